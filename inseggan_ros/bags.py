@@ -1,0 +1,296 @@
+"""rosbag2 bags (MCAP or sqlite3) of depth frames, read and written with `rosbags` (no ROS needed).
+
+Topics follow the camera-driver convention (realsense2_camera, depth_image_proc):
+  /camera/depth/image_rect_raw     sensor_msgs/msg/Image   16UC1 millimetres or 32FC1 metres
+  /camera/depth/camera_info        sensor_msgs/msg/CameraInfo
+  /camera/depth/instance_labels    sensor_msgs/msg/Image   mono8 ground truth (simulated bags only)
+The reader takes any topic names and any bag `ros2 bag record` writes; expected problems (missing,
+truncated or corrupt bag, absent topic, unsupported encoding) raise `BagError` naming the bag and
+the problem. The writer writes into a hidden temporary directory and renames it into place when
+the bag is complete, so a failed or interrupted write leaves nothing behind.
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable, Iterator
+
+import numpy as np
+
+from . import image_codec
+from .image_codec import DEPTH_ENCODINGS, ImageFormatError
+
+DEPTH_TOPIC = "/camera/depth/image_rect_raw"
+INFO_TOPIC = "/camera/depth/camera_info"
+LABELS_TOPIC = "/camera/depth/instance_labels"
+IMAGE_TYPE = "sensor_msgs/msg/Image"
+INFO_TYPE = "sensor_msgs/msg/CameraInfo"
+DEFAULT_FRAME_ID = "camera_depth_optical_frame"
+
+
+class BagError(Exception):
+    """An expected problem with a bag: the message names the bag and what is wrong."""
+
+    def __init__(self, path, problem: str):
+        super().__init__(f"{path}: {problem}")
+        self.path, self.problem = str(path), problem
+
+
+@dataclass
+class CameraInfo:
+    """The parts of sensor_msgs/CameraInfo this package uses."""
+    width: int
+    height: int
+    K: np.ndarray  # (3, 3)
+    D: np.ndarray = field(default_factory=lambda: np.zeros(5))
+    distortion_model: str = "plumb_bob"
+
+    @staticmethod
+    def from_camera(cam) -> "CameraInfo":
+        """From a `sim.camera.CameraConfig`."""
+        return CameraInfo(cam.width, cam.height, cam.K)
+
+
+@dataclass
+class DepthFrame:
+    stamp_ns: int
+    frame_id: str
+    encoding: str  # one of image_codec.DEPTH_ENCODINGS
+    depth: np.ndarray  # (H, W) raw values: uint16 millimetres or float32 metres
+    labels: np.ndarray | None = None  # (H, W) uint8 ground truth, when known
+    camera_info: CameraInfo | None = None
+
+    def metres(self) -> np.ndarray:
+        return image_codec.depth_to_metres(self.depth, self.encoding)
+
+
+def _typestore():
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS2_JAZZY)
+
+
+def _stamp_ns(header) -> int:
+    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+
+
+# --------------------------------------------------------------------------------- reading
+def _open_reader(path: Path):
+    from rosbags.rosbag2 import Reader
+
+    if not path.exists():
+        raise BagError(path, "no such bag (expected a rosbag2 directory, .mcap or .db3 file)")
+    try:
+        reader = Reader(path)
+        reader.open()
+    except BagError:
+        raise
+    except Exception as e:  # rosbags raises several types for unreadable bags
+        raise BagError(path, f"cannot open bag: {e}") from None
+    return reader
+
+
+def list_topics(path) -> dict[str, tuple[str, int]]:
+    """{topic: (message type, message count)} of a bag."""
+    path = Path(path)
+    reader = _open_reader(path)
+    try:
+        return {t: (info.msgtype or "?", info.msgcount) for t, info in reader.topics.items()}
+    finally:
+        reader.close()
+
+
+def _describe(topics: dict) -> str:
+    return ", ".join(f"{t} [{typ}]" for t, (typ, _) in sorted(topics.items())) or "none"
+
+
+def _pick_topic(path, topics: dict, wanted: str | None, default: str, msgtype: str,
+                required: bool) -> str | None:
+    if wanted:
+        if wanted not in topics:
+            raise BagError(path, f"topic {wanted!r} is not in the bag; topics: {_describe(topics)}")
+        if topics[wanted][0] != msgtype:
+            raise BagError(path, f"topic {wanted!r} has type {topics[wanted][0]}, expected "
+                                 f"{msgtype}; topics: {_describe(topics)}")
+        return wanted
+    if default in topics and topics[default][0] == msgtype:
+        return default
+    if not required:
+        return None
+    candidates = [t for t, (typ, _) in topics.items() if typ == msgtype and "label" not in t]
+    if len(candidates) == 1:
+        return candidates[0]
+    raise BagError(path, f"no {msgtype} topic {default!r}; name one; topics: {_describe(topics)}")
+
+
+def read_frames(path, depth_topic: str | None = None, info_topic: str | None = None,
+                labels_topic: str | None = None, limit: int | None = None) -> Iterator[DepthFrame]:
+    """Yield the depth frames of a bag in time order, with ground truth and camera info if there.
+
+    `depth_topic` defaults to /camera/depth/image_rect_raw, or the bag's only Image topic;
+    `info_topic` to the camera_info beside it; `labels_topic` to /camera/depth/instance_labels.
+    Labels are matched to depth frames by header stamp; camera info is the latest before a frame.
+    """
+    path = Path(path)
+    reader = _open_reader(path)
+    try:
+        topics = {t: (i.msgtype or "?", i.msgcount) for t, i in reader.topics.items()}
+        depth_topic = _pick_topic(path, topics, depth_topic, DEPTH_TOPIC, IMAGE_TYPE, True)
+        sibling = depth_topic.rsplit("/", 1)[0] + "/camera_info"
+        info_topic = _pick_topic(path, topics, info_topic,
+                                 sibling if sibling in topics else INFO_TOPIC, INFO_TYPE, False)
+        labels_topic = _pick_topic(path, topics, labels_topic, LABELS_TOPIC, IMAGE_TYPE, False)
+        if labels_topic == depth_topic:
+            raise BagError(path, f"labels topic and depth topic are the same: {depth_topic!r}")
+        store = _typestore()
+
+        def messages(topic_names):
+            wanted = [c for c in reader.connections if c.topic in topic_names]
+            for conn, _t, raw in reader.messages(connections=wanted):
+                yield conn.topic, store.deserialize_cdr(raw, conn.msgtype)
+
+        labels: dict[int, np.ndarray] = {}
+        if labels_topic:  # first pass: ground truth by stamp (small, mono8)
+            for _, msg in messages({labels_topic}):
+                labels[_stamp_ns(msg.header)] = image_codec.decode(
+                    msg.height, msg.width, msg.encoding, msg.is_bigendian, msg.step, msg.data,
+                    allowed=("mono8", "8UC1"))
+        info = None
+        count = 0
+        for topic, msg in messages({depth_topic} | ({info_topic} if info_topic else set())):
+            if topic == info_topic:
+                info = CameraInfo(int(msg.width), int(msg.height),
+                                  np.asarray(msg.k, float).reshape(3, 3),
+                                  np.asarray(msg.d, float), str(msg.distortion_model))
+                continue
+            try:
+                depth = image_codec.decode(msg.height, msg.width, msg.encoding, msg.is_bigendian,
+                                           msg.step, msg.data, allowed=DEPTH_ENCODINGS)
+            except ImageFormatError as e:
+                raise BagError(path, f"topic {depth_topic!r}: {e}") from None
+            stamp = _stamp_ns(msg.header)
+            yield DepthFrame(stamp, str(msg.header.frame_id), str(msg.encoding), depth,
+                             labels.get(stamp), info)
+            count += 1
+            if limit is not None and count >= limit:
+                return
+    except BagError:
+        raise
+    except ImageFormatError as e:
+        raise BagError(path, f"topic {labels_topic!r}: {e}") from None
+    except Exception as e:  # truncated chunk, bad CDR, ... inside a bag that opened
+        raise BagError(path, f"corrupt or truncated bag: {type(e).__name__}: {e}") from None
+    finally:
+        reader.close()
+
+
+def read_all(path, **kwargs) -> list[DepthFrame]:
+    return list(read_frames(path, **kwargs))
+
+
+# --------------------------------------------------------------------------------- writing
+def _header(store, stamp_ns: int, frame_id: str):
+    Time = store.types["builtin_interfaces/msg/Time"]
+    Header = store.types["std_msgs/msg/Header"]
+    return Header(stamp=Time(sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000),
+                  frame_id=frame_id)
+
+
+def _image_msg(store, header, array: np.ndarray, encoding: str):
+    step, data = image_codec.encode(array, encoding)
+    Image = store.types[IMAGE_TYPE]
+    return Image(header=header, height=array.shape[0], width=array.shape[1], encoding=encoding,
+                 is_bigendian=0, step=step, data=np.frombuffer(data, np.uint8))
+
+
+def _info_msg(store, header, info: CameraInfo):
+    CI = store.types[INFO_TYPE]
+    ROI = store.types["sensor_msgs/msg/RegionOfInterest"]
+    K = np.asarray(info.K, float)
+    P = np.zeros((3, 4))
+    P[:, :3] = K
+    return CI(header=header, height=info.height, width=info.width,
+              distortion_model=info.distortion_model, d=np.asarray(info.D, float),
+              k=K.reshape(-1), r=np.eye(3).reshape(-1), p=P.reshape(-1), binning_x=0,
+              binning_y=0, roi=ROI(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
+
+
+class BagWriter:
+    """Write depth frames (+ camera info, + labels) to a new rosbag2 bag, atomically.
+
+        with BagWriter("out/bag", encoding="16UC1") as w:
+            w.write(stamp_ns, depth_m, labels=labels, camera_info=info)
+    """
+
+    def __init__(self, path, encoding: str = "16UC1", storage: str = "mcap",
+                 depth_topic: str = DEPTH_TOPIC, info_topic: str = INFO_TOPIC,
+                 labels_topic: str = LABELS_TOPIC, frame_id: str = DEFAULT_FRAME_ID):
+        if encoding not in ("16UC1", "32FC1"):
+            raise ValueError(f"bag depth encoding {encoding!r} invalid; valid: 16UC1, 32FC1")
+        if storage not in ("mcap", "sqlite3"):
+            raise ValueError(f"bag storage {storage!r} invalid; valid: mcap, sqlite3")
+        self.path = Path(path)
+        if self.path.exists():
+            raise BagError(self.path, "exists already; not overwriting")
+        self.encoding, self.storage, self.frame_id = encoding, storage, frame_id
+        self.topics = (depth_topic, info_topic, labels_topic)
+        self.count = 0
+        self._writer = None
+
+    def __enter__(self) -> "BagWriter":
+        from rosbags.rosbag2 import StoragePlugin, Writer
+
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._tmpdir = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.partial-",
+                                             dir=self.path.parent))
+        self._store = _typestore()
+        plugin = StoragePlugin.MCAP if self.storage == "mcap" else StoragePlugin.SQLITE3
+        self._writer = Writer(self._tmpdir / self.path.name, version=9, storage_plugin=plugin)
+        self._writer.open()
+        self._conns = {}
+        return self
+
+    def _conn(self, topic: str, msgtype: str):
+        if topic not in self._conns:
+            self._conns[topic] = self._writer.add_connection(topic, msgtype, typestore=self._store)
+        return self._conns[topic]
+
+    def write(self, stamp_ns: int, depth_m: np.ndarray, labels: np.ndarray | None = None,
+              camera_info: CameraInfo | None = None, frame_id: str | None = None) -> None:
+        store, w = self._store, self._writer
+        depth_topic, info_topic, labels_topic = self.topics
+        header = _header(store, int(stamp_ns), frame_id or self.frame_id)
+        raw = image_codec.metres_to_depth(depth_m, self.encoding)
+        if camera_info is not None:
+            msg = _info_msg(store, header, camera_info)
+            w.write(self._conn(info_topic, INFO_TYPE), stamp_ns,
+                    store.serialize_cdr(msg, INFO_TYPE))
+        msg = _image_msg(store, header, raw, self.encoding)
+        w.write(self._conn(depth_topic, IMAGE_TYPE), stamp_ns, store.serialize_cdr(msg, IMAGE_TYPE))
+        if labels is not None:
+            msg = _image_msg(store, header, np.asarray(labels, np.uint8), "mono8")
+            w.write(self._conn(labels_topic, IMAGE_TYPE), stamp_ns,
+                    store.serialize_cdr(msg, IMAGE_TYPE))
+        self.count += 1
+
+    def __exit__(self, exc_type, exc, tb):
+        try:
+            self._writer.close()
+            if exc_type is None:
+                os.replace(self._tmpdir / self.path.name, self.path)
+        finally:
+            shutil.rmtree(self._tmpdir, ignore_errors=True)
+
+
+def write_frames(path, frames: Iterable[DepthFrame | tuple], **kwargs) -> int:
+    """Write (stamp_ns, depth_m, labels, camera_info) tuples or DepthFrames; returns the count."""
+    with BagWriter(path, **kwargs) as w:
+        for f in frames:
+            if isinstance(f, DepthFrame):
+                w.write(f.stamp_ns, f.metres(), f.labels, f.camera_info, f.frame_id)
+            else:
+                w.write(*f)
+    return w.count

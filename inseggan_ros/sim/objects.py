@@ -1,0 +1,189 @@
+"""Procedural object library: industrial parts built from code, no mesh files, no downloads.
+
+Every object is described in its own body frame (metres, origin near the centre of mass) by
+  * `parts`: convex pieces for collision (pybullet makes a convex hull of each vertex set), and
+  * `mesh`:  one triangle mesh (vertices, triangle indices) that is rendered.
+Concave parts (the hole of a hex nut) are modelled as several convex pieces, so the hole is
+real for physics and for the depth camera alike.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Mesh:
+    vertices: np.ndarray  # (V, 3) float, metres
+    triangles: np.ndarray  # (T, 3) int, counter-clockwise seen from outside
+
+    @staticmethod
+    def merge(meshes: list["Mesh"]) -> "Mesh":
+        verts, tris, offset = [], [], 0
+        for m in meshes:
+            verts.append(m.vertices)
+            tris.append(m.triangles + offset)
+            offset += len(m.vertices)
+        return Mesh(np.concatenate(verts), np.concatenate(tris))
+
+    def translated(self, offset) -> "Mesh":
+        return Mesh(self.vertices + np.asarray(offset, float), self.triangles)
+
+
+@dataclass(frozen=True)
+class ObjectSpec:
+    name: str
+    description: str
+    parts: tuple[np.ndarray, ...]  # convex vertex sets (N_i, 3) for collision
+    mesh: Mesh
+    mass: float  # kg
+
+    @property
+    def extent(self) -> np.ndarray:
+        """Axis-aligned size (x, y, z) of the object in its own frame, metres."""
+        v = self.mesh.vertices
+        return v.max(0) - v.min(0)
+
+    @property
+    def radius(self) -> float:
+        """Radius of the bounding sphere around the body origin, metres."""
+        return float(np.linalg.norm(self.mesh.vertices, axis=1).max())
+
+
+# --------------------------------------------------------------------------- mesh builders
+def _circle(radius: float, segments: int, phase: float = 0.0) -> np.ndarray:
+    a = phase + np.linspace(0.0, 2.0 * np.pi, segments, endpoint=False)
+    return np.stack([radius * np.cos(a), radius * np.sin(a)], 1)
+
+
+def _hexagon(across_flats: float, points_per_side: int = 1) -> np.ndarray:
+    """Regular hexagon (flat sides), optionally resampled with several points per side."""
+    corner = across_flats / np.sqrt(3.0)
+    corners = _circle(corner, 6, phase=np.pi / 6)
+    pts = []
+    for i in range(6):
+        a, b = corners[i], corners[(i + 1) % 6]
+        for k in range(points_per_side):
+            pts.append(a + (b - a) * k / points_per_side)
+    return np.array(pts)
+
+
+def frustum(r_bottom: float, r_top: float, height: float, segments: int = 24) -> Mesh:
+    """Closed cylinder, cone (r_top = 0) or truncated cone, centred on the origin, axis z."""
+    z0, z1 = -height / 2, height / 2
+    bottom = np.column_stack([_circle(r_bottom, segments), np.full(segments, z0)])
+    top = np.column_stack([_circle(max(r_top, 1e-6), segments), np.full(segments, z1)])
+    verts = np.concatenate([bottom, top, [[0, 0, z0], [0, 0, z1]]])
+    cb, ct = 2 * segments, 2 * segments + 1
+    tris = []
+    for i in range(segments):
+        j = (i + 1) % segments
+        tris += [[i, j, segments + j], [i, segments + j, segments + i]]  # side
+        tris += [[cb, j, i], [ct, segments + i, segments + j]]  # caps
+    return Mesh(verts, np.array(tris))
+
+
+def prism(polygon: np.ndarray, height: float) -> Mesh:
+    """Extrude a convex polygon (counter-clockwise, xy) along z, centred on the origin."""
+    n = len(polygon)
+    z0, z1 = -height / 2, height / 2
+    verts = np.concatenate([np.column_stack([polygon, np.full(n, z0)]),
+                            np.column_stack([polygon, np.full(n, z1)]),
+                            [[*polygon.mean(0), z0], [*polygon.mean(0), z1]]])
+    cb, ct = 2 * n, 2 * n + 1
+    tris = []
+    for i in range(n):
+        j = (i + 1) % n
+        tris += [[i, j, n + j], [i, n + j, n + i], [cb, j, i], [ct, n + i, n + j]]
+    return Mesh(verts, np.array(tris))
+
+
+def ring(outer: np.ndarray, inner: np.ndarray, height: float) -> Mesh:
+    """Extruded ring between two closed xy polylines with the same number of points."""
+    n = len(outer)
+    z0, z1 = -height / 2, height / 2
+    rings = [np.column_stack([p, np.full(n, z)]) for p, z in
+             ((outer, z0), (outer, z1), (inner, z0), (inner, z1))]
+    verts = np.concatenate(rings)
+    ob, ot, ib, it = 0, n, 2 * n, 3 * n
+    tris = []
+    for i in range(n):
+        j = (i + 1) % n
+        tris += [[ob + i, ob + j, ot + j], [ob + i, ot + j, ot + i]]  # outer wall
+        tris += [[ib + j, ib + i, it + i], [ib + j, it + i, it + j]]  # inner wall
+        tris += [[ot + i, ot + j, it + j], [ot + i, it + j, it + i]]  # top face
+        tris += [[ob + j, ob + i, ib + i], [ob + j, ib + i, ib + j]]  # bottom face
+    return Mesh(verts, np.array(tris))
+
+
+def box(size) -> Mesh:
+    sx, sy, sz = np.asarray(size, float) / 2
+    return prism(np.array([[-sx, -sy], [sx, -sy], [sx, sy], [-sx, sy]]), 2 * sz)
+
+
+# --------------------------------------------------------------------------- the library
+def _single(name, description, mesh, density=1200.0) -> ObjectSpec:
+    volume = float(np.prod(mesh.vertices.max(0) - mesh.vertices.min(0)))
+    return ObjectSpec(name, description, (mesh.vertices,), mesh, mass=density * volume * 0.6)
+
+
+def _hex_nut() -> ObjectSpec:
+    # An M16 nut: 24 mm across flats, 13 mm thick, 16 mm hole.
+    af, thickness, hole_r, per_side = 0.024, 0.013, 0.008, 4
+    outer = _hexagon(af, per_side)
+    inner = _circle(hole_r, 6 * per_side, phase=np.pi / 6)
+    mesh = ring(outer, inner, thickness)
+    # Collision: six convex wedges, one per side of the hexagon, leaving the hole open.
+    parts = []
+    for s in range(6):
+        idx = [(s * per_side + k) % len(outer) for k in range(per_side + 1)]
+        ring_pts = np.concatenate([outer[idx], inner[idx][::-1]])
+        parts.append(np.concatenate([np.column_stack([ring_pts, np.full(len(ring_pts), z)])
+                                     for z in (-thickness / 2, thickness / 2)]))
+    volume = thickness * (np.sqrt(3) / 2 * af ** 2 - np.pi * hole_r ** 2)
+    return ObjectSpec("hex_nut", "M16 hex nut with its hole (24 mm AF, 13 mm)", tuple(parts),
+                      mesh, mass=7850.0 * volume)
+
+
+def _bolt() -> ObjectSpec:
+    # An M10x40 hex bolt: head 17 mm AF x 6.4 mm, shaft 10 mm x 40 mm.
+    head_h, shaft_l, shaft_r = 0.0064, 0.040, 0.005
+    total = head_h + shaft_l
+    head = prism(_hexagon(0.017), head_h).translated([0, 0, total / 2 - head_h / 2])
+    shaft = frustum(shaft_r, shaft_r, shaft_l, 16).translated([0, 0, -total / 2 + shaft_l / 2])
+    # Centre of mass is closer to the head; keep the origin at the geometric centre for
+    # simplicity (the physics engine uses the link frame as the inertial frame).
+    return ObjectSpec("bolt", "M10x40 hex bolt (17 mm head, 10 mm shaft)",
+                      (head.vertices, shaft.vertices), Mesh.merge([head, shaft]), mass=0.03)
+
+
+def _pin_connector() -> ObjectSpec:
+    # A flanged dowel pin: shaft 10 mm x 36 mm with a 24 mm x 5 mm flange a third of the way up.
+    shaft = frustum(0.005, 0.005, 0.036, 16)
+    flange = frustum(0.012, 0.012, 0.005, 24).translated([0, 0, 0.006])
+    return ObjectSpec("pin_connector", "flanged pin (10 x 36 mm shaft, 24 mm flange)",
+                      (shaft.vertices, flange.vertices), Mesh.merge([shaft, flange]), mass=0.02)
+
+
+OBJECTS: dict[str, ObjectSpec] = {
+    o.name: o for o in (
+        _single("cylinder", "solid cylinder, 24 mm diameter x 40 mm",
+                frustum(0.012, 0.012, 0.040)),
+        _single("cone", "cone, 30 mm base diameter x 40 mm", frustum(0.015, 0.0, 0.040)),
+        _hex_nut(),
+        _bolt(),
+        _single("wooden_block", "wooden block 50 x 25 x 15 mm", box([0.050, 0.025, 0.015]),
+                density=600.0),
+        _single("stopper", "tapered rubber stopper, 22/30 mm diameter x 25 mm",
+                frustum(0.011, 0.015, 0.025)),
+        _pin_connector(),
+    )
+}
+
+
+def get_object(name: str) -> ObjectSpec:
+    try:
+        return OBJECTS[name]
+    except KeyError:
+        raise ValueError(f"unknown object {name!r}; valid: {', '.join(OBJECTS)}") from None

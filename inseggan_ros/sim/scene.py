@@ -1,0 +1,227 @@
+"""The physics bin: n identical objects dropped one at a time into a box, seen from above.
+
+pybullet in DIRECT mode (no GUI, no files, no downloads), its CPU TinyRenderer for the depth and
+segmentation buffers. Every scene starts from `resetSimulation`, so a scene depends on its seed
+alone, not on what the simulator did before (the same seed gives the same bytes).
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+from scipy.spatial import ConvexHull
+
+from .camera import CameraConfig
+from .noise import NoiseConfig, apply_noise
+from .objects import ObjectSpec, get_object
+
+
+@dataclass(frozen=True)
+class BinConfig:
+    inner_size: tuple[float, float] = (0.15, 0.15)  # metres (x, y)
+    wall_height: float = 0.08
+    wall_thickness: float = 0.01
+
+    def __post_init__(self):
+        if min(self.inner_size) <= 0.03 or max(self.inner_size) > 2.0:
+            raise ValueError(f"bin inner_size {self.inner_size} invalid; valid: 0.03..2 m per side")
+        if not 0.005 <= self.wall_height <= 1.0:
+            raise ValueError(f"bin wall_height {self.wall_height} invalid; valid: 0.005..1 m")
+
+    def corners(self) -> np.ndarray:
+        """The four inner corners of the bin floor, world metres (z = 0)."""
+        hx, hy = self.inner_size[0] / 2, self.inner_size[1] / 2
+        return np.array([[-hx, -hy, 0], [hx, -hy, 0], [hx, hy, 0], [-hx, hy, 0]])
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    object: str = "cylinder"
+    instances: int = 5
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    bin: BinConfig = field(default_factory=BinConfig)
+    noise: NoiseConfig = field(default_factory=NoiseConfig)
+    drop_spread: float = 0.35  # objects drop within this fraction of the bin's inner size
+    time_step: float = 1.0 / 120.0
+    settle_speed: float = 0.02  # m/s (and rad/s scaled by the object radius)
+    max_settle_steps: int = 240
+
+    def __post_init__(self):
+        get_object(self.object)  # raises with the list of valid names
+        if not 1 <= self.instances <= 20:
+            raise ValueError(f"instances must be in 1..20, got {self.instances}")
+        if not 0 < self.drop_spread <= 1:
+            raise ValueError(f"drop_spread must be in (0, 1], got {self.drop_spread}")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @staticmethod
+    def from_dict(d: dict) -> "SceneConfig":
+        d = dict(d)
+        d["camera"] = CameraConfig(**d["camera"])
+        b = dict(d["bin"])
+        b["inner_size"] = tuple(b["inner_size"])
+        d["bin"] = BinConfig(**b)
+        d["noise"] = NoiseConfig(**d["noise"])
+        return SceneConfig(**d)
+
+
+@dataclass
+class Scene:
+    depth: np.ndarray  # (H, W) float32 metres; 0 = no reading (noise model only)
+    labels: np.ndarray  # (H, W) uint8, 0 = bin / background, 1..n = instance
+    poses: np.ndarray  # (n, 7) float32: x, y, z, qx, qy, qz, qw (world frame)
+    seed: int
+
+
+@contextlib.contextmanager
+def _quiet_c_output():
+    """pybullet prints its build time from C when imported; keep our CLI output clean."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 1)
+            os.dup2(null.fileno(), 2)
+            yield
+    finally:
+        os.dup2(saved[0], 1)
+        os.dup2(saved[1], 2)
+        for fd in saved:
+            os.close(fd)
+
+
+class BinSimulator:
+    """Owns one pybullet physics client; `render(seed)` makes one scene."""
+
+    def __init__(self, config: SceneConfig):
+        with _quiet_c_output():  # imported here so that `import inseggan_ros.sim` stays light
+            import pybullet
+            self.client = pybullet.connect(pybullet.DIRECT)
+        self.p = pybullet
+        self.cfg = config
+        self.spec: ObjectSpec = get_object(config.object)
+        self._tmpdir = tempfile.TemporaryDirectory(prefix="inseggan_sim_")
+        self._part_files = []
+        for i, part in enumerate(self.spec.parts):
+            path = os.path.join(self._tmpdir.name, f"{self.spec.name}_part{i}.obj")
+            with open(path, "w") as f:
+                f.writelines(f"v {x:.6f} {y:.6f} {z:.6f}\n" for x, y, z in part)
+                f.writelines(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in ConvexHull(part).simplices)
+            self._part_files.append(path)
+        self._view = config.camera.view_matrix()
+        self._proj = config.camera.projection_matrix()
+
+    def close(self) -> None:
+        if self.client is not None:
+            self.p.disconnect(physicsClientId=self.client)
+            self.client = None
+            self._tmpdir.cleanup()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    # ------------------------------------------------------------------ world building
+    def _reset_world(self) -> tuple[int, int]:
+        p, c, b = self.p, self.client, self.cfg.bin
+        p.resetSimulation(physicsClientId=c)
+        p.setGravity(0, 0, -9.81, physicsClientId=c)
+        p.setPhysicsEngineParameter(fixedTimeStep=self.cfg.time_step, numSolverIterations=10,
+                                    deterministicOverlappingPairs=1, physicsClientId=c)
+        hx, hy, t, h = b.inner_size[0] / 2, b.inner_size[1] / 2, b.wall_thickness, b.wall_height
+        boxes = [([1.0, 1.0, t / 2], [0, 0, -t / 2]),  # bin floor on a 2 m table, top at z = 0
+                 ([t / 2, hy + t, h / 2], [hx + t / 2, 0, h / 2]),
+                 ([t / 2, hy + t, h / 2], [-hx - t / 2, 0, h / 2]),
+                 ([hx, t / 2, h / 2], [0, hy + t / 2, h / 2]),
+                 ([hx, t / 2, h / 2], [0, -hy - t / 2, h / 2])]
+        for half, pos in boxes:
+            col = p.createCollisionShape(p.GEOM_BOX, halfExtents=half, physicsClientId=c)
+            vis = p.createVisualShape(p.GEOM_BOX, halfExtents=half, physicsClientId=c)
+            body = p.createMultiBody(0, col, vis, basePosition=pos, physicsClientId=c)
+            p.changeDynamics(body, -1, lateralFriction=0.6, physicsClientId=c)
+        spec = self.spec
+        if len(spec.parts) == 1:
+            col = p.createCollisionShape(p.GEOM_MESH, vertices=spec.parts[0].tolist(),
+                                         physicsClientId=c)
+        else:  # a compound of convex hulls; pybullet takes those only from mesh files
+            k = len(spec.parts)
+            col = p.createCollisionShapeArray([p.GEOM_MESH] * k, fileNames=self._part_files,
+                                              meshScales=[[1, 1, 1]] * k, physicsClientId=c)
+        vis = p.createVisualShape(p.GEOM_MESH, vertices=spec.mesh.vertices.tolist(),
+                                  indices=spec.mesh.triangles.reshape(-1).tolist(),
+                                  physicsClientId=c)
+        return col, vis
+
+    def _settle(self, bodies: list[int]) -> None:
+        p, c = self.p, self.client
+        r = self.spec.radius
+        for step in range(self.cfg.max_settle_steps):
+            p.stepSimulation(physicsClientId=c)
+            if step % 4 == 3:
+                fastest = 0.0
+                for b in bodies:
+                    lin, ang = p.getBaseVelocity(b, physicsClientId=c)
+                    fastest = max(fastest, max(map(abs, lin)), r * max(map(abs, ang)))
+                if fastest < self.cfg.settle_speed:
+                    return
+
+    def _inside_bin(self, body: int) -> bool:
+        (x, y, z), _ = self.p.getBasePositionAndOrientation(body, physicsClientId=self.client)
+        hx, hy = self.cfg.bin.inner_size[0] / 2, self.cfg.bin.inner_size[1] / 2
+        return abs(x) < hx and abs(y) < hy and -0.01 < z < self.cfg.bin.wall_height
+
+    # ------------------------------------------------------------------ one scene
+    def render(self, seed: int) -> Scene:
+        p, c, cfg = self.p, self.client, self.cfg
+        t0 = time.perf_counter()
+        rng = np.random.default_rng(seed)
+        col, vis = self._reset_world()
+        spread = np.asarray(cfg.bin.inner_size) * cfg.drop_spread / 2
+        bodies: list[int] = []
+        top = 0.0
+        for _ in range(cfg.instances):
+            for _attempt in range(5):
+                q = rng.standard_normal(4)
+                q /= np.linalg.norm(q)
+                pos = [*rng.uniform(-spread, spread), top + self.spec.radius + 0.01]
+                body = p.createMultiBody(self.spec.mass, col, vis, basePosition=pos,
+                                         baseOrientation=q.tolist(), physicsClientId=c)
+                p.changeDynamics(body, -1, lateralFriction=0.6, rollingFriction=0.002,
+                                 spinningFriction=0.002, linearDamping=0.1, angularDamping=0.1,
+                                 physicsClientId=c)
+                self._settle(bodies + [body])
+                if self._inside_bin(body):
+                    break
+                p.removeBody(body, physicsClientId=c)  # bounced out: drop it again
+            else:
+                raise RuntimeError(f"seed {seed}: could not drop object into the bin")
+            bodies.append(body)
+            top = max(p.getAABB(b, physicsClientId=c)[1][2] for b in bodies)
+
+        t1 = time.perf_counter()
+        cam = cfg.camera
+        _, _, _, zbuf, seg = p.getCameraImage(
+            cam.width, cam.height, self._view, self._proj, shadow=0,
+            renderer=p.ER_TINY_RENDERER, physicsClientId=c)
+        zbuf = np.asarray(zbuf, np.float32).reshape(cam.height, cam.width)
+        seg = np.asarray(seg, np.int32).reshape(cam.height, cam.width)
+        depth = cam.depth_from_zbuffer(zbuf)
+        lut = np.zeros(max(max(bodies), int(seg.max())) + 2, np.uint8)
+        lut[np.array(bodies) + 1] = np.arange(1, len(bodies) + 1)
+        labels = lut[np.clip(seg, -1, None) + 1]
+        if cfg.noise.enabled:
+            depth = apply_noise(depth, cfg.noise, rng)
+        poses = np.array([sum(map(list, p.getBasePositionAndOrientation(b, physicsClientId=c)), [])
+                          for b in bodies], np.float32)
+        self.last_timing = {"physics": t1 - t0, "render": time.perf_counter() - t1}
+        return Scene(depth=depth, labels=labels, poses=poses, seed=int(seed))
