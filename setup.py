@@ -1,8 +1,19 @@
+import os
 from glob import glob
 
 from setuptools import find_packages, setup
 
 package_name = "inseggan_ros"
+
+
+def share_tree(folder):
+    """data_files entries that install `folder` under share/inseggan_ros, keeping its layout."""
+    entries = {}
+    for path in sorted(glob(os.path.join(folder, "**", "*"), recursive=True)):
+        if os.path.isfile(path):
+            entries.setdefault(os.path.join("share", package_name, os.path.dirname(path)), []).append(path)
+    return list(entries.items())
+
 
 setup(
     name=package_name,
@@ -11,16 +22,13 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml", "README.md"]),
-        ("share/" + package_name + "/models", [f for f in glob("models/**/*", recursive=True)
-                                                if not f.endswith("/")]),
-    ],
+    ] + share_tree("models") + share_tree("bags"),
     install_requires=["setuptools"],
     zip_safe=True,
     maintainer="inseggan_ros developers",
     maintainer_email="dev@inseggan-ros.invalid",
     description="Unsupervised instance segmentation of identical objects in a bin (InSeGAN)",
     license="Apache-2.0",
-    tests_require=["pytest"],
     entry_points={
         "console_scripts": [
             "inseggan = inseggan_ros.cli:main",
