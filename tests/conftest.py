@@ -1,0 +1,49 @@
+"""Shared test set-up: DDS stays on this machine, in a domain of this test run's own."""
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+os.environ.setdefault("ROS_DOMAIN_ID", str(os.getpid() % 90 + 5))
+
+REPO = Path(__file__).resolve().parents[1]
+BAGS = REPO / "bags"
+
+
+def installed_executable(name: str) -> Path:
+    """Where `ros2 run inseggan_ros <name>` finds the executable: <prefix>/lib/inseggan_ros/<name>."""
+    from ament_index_python.packages import PackageNotFoundError, get_package_prefix
+
+    try:
+        prefix = get_package_prefix("inseggan_ros")
+    except PackageNotFoundError:
+        pytest.fail("inseggan_ros is not on AMENT_PREFIX_PATH: build it with colcon and "
+                    "`source install/setup.bash` (make test does both)")
+    return Path(prefix) / "lib" / "inseggan_ros" / name
+
+
+def run_cli(*args, timeout=300, check=False) -> subprocess.CompletedProcess:
+    """Run the installed `inseggan` command."""
+    proc = subprocess.run([str(installed_executable("inseggan")), *map(str, args)],
+                          capture_output=True, text=True, timeout=timeout)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"inseggan {args} failed ({proc.returncode}):\n{proc.stderr}")
+    return proc
+
+
+@pytest.fixture
+def tmp(tmp_path):
+    return tmp_path
+
+
+@pytest.fixture(scope="session")
+def python():
+    return sys.executable
+
+
+def which(name):
+    return shutil.which(name)

@@ -1,0 +1,62 @@
+"""A separate rclpy process that subscribes to bin_replay's topics and saves what it receives.
+
+    python receiver.py OUT.npz COUNT TIMEOUT_S [NAMESPACE]
+Saves depth (raw), labels, encodings, stamps, frame_ids and camera K of the first COUNT depth
+frames (with the labels and camera info of the same stamp). Exit 0 when COUNT were received.
+"""
+import sys
+import time
+
+import numpy as np
+import rclpy
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import CameraInfo, Image
+
+
+def main():
+    out, count, timeout = sys.argv[1], int(sys.argv[2]), float(sys.argv[3])
+    ns = sys.argv[4] if len(sys.argv) > 4 else ""
+    rclpy.init()
+    node = rclpy.create_node("test_receiver")
+    depth, labels, infos = [], {}, {}
+
+    def key(msg):
+        return msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+
+    node.create_subscription(Image, f"{ns}/camera/depth/image_rect_raw",
+                             lambda m: depth.append(m), qos_profile_sensor_data)
+    node.create_subscription(Image, f"{ns}/camera/depth/instance_labels",
+                             lambda m: labels.__setitem__(key(m), m), qos_profile_sensor_data)
+    node.create_subscription(CameraInfo, f"{ns}/camera/depth/camera_info",
+                             lambda m: infos.__setitem__(key(m), m), qos_profile_sensor_data)
+    print("receiver ready", flush=True)
+    t0 = time.monotonic()
+    while len(depth) < count and time.monotonic() - t0 < timeout:
+        rclpy.spin_once(node, timeout_sec=0.05)
+    end = time.monotonic() + 0.3  # labels/info of the last frame
+    while time.monotonic() < end:
+        rclpy.spin_once(node, timeout_sec=0.05)
+    frames = depth[:count]
+
+    def raw(m):
+        dt = {"16UC1": "<u2", "32FC1": "<f4", "mono8": "u1"}[m.encoding]
+        a = np.frombuffer(bytes(m.data), np.uint8).reshape(m.height, m.step)
+        a = a[:, : m.width * np.dtype(dt).itemsize].copy().view(dt)
+        return a.reshape(m.height, m.width)
+
+    np.savez(out,
+             depth=np.array([raw(m) for m in frames], dtype=object),
+             labels=np.array([raw(labels[key(m)]) if key(m) in labels else None
+                              for m in frames], dtype=object),
+             K=np.array([np.array(infos[key(m)].k) if key(m) in infos else None
+                         for m in frames], dtype=object),
+             encoding=np.array([m.encoding for m in frames]),
+             frame_id=np.array([m.header.frame_id for m in frames]),
+             stamp=np.array([key(m) for m in frames], np.int64))
+    node.destroy_node()
+    rclpy.shutdown()
+    sys.exit(0 if len(frames) == count else 1)
+
+
+if __name__ == "__main__":
+    main()

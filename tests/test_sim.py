@@ -1,0 +1,118 @@
+"""The simulator: object library, camera geometry, determinism, ground truth, noise."""
+import numpy as np
+import pytest
+
+from inseggan_ros.sim.camera import CameraConfig, get_camera
+from inseggan_ros.sim.noise import NoiseConfig, apply_noise, get_noise
+from inseggan_ros.sim.objects import OBJECTS, get_object
+from inseggan_ros.sim.scene import BinSimulator, SceneConfig
+
+
+def test_library_has_the_industrial_parts():
+    for name in ("cylinder", "cone", "hex_nut", "bolt", "wooden_block"):
+        assert name in OBJECTS
+    assert len(OBJECTS) >= 7
+    for spec in OBJECTS.values():
+        ext = spec.extent
+        assert 0.004 < ext.min() and ext.max() < 0.08, f"{spec.name} is not a few cm: {ext}"
+        t = spec.mesh.triangles
+        assert t.min() == 0 and t.max() < len(spec.mesh.vertices)
+        assert spec.mass > 0
+
+
+def test_unknown_object_lists_valid_names():
+    with pytest.raises(ValueError, match="valid: cylinder, cone"):
+        get_object("teapot")
+
+
+def test_projection_matches_pinhole_model():
+    # An off-centre principal point: a cone's apex region must land where u = fx X/Z + cx says.
+    cam = CameraConfig(width=160, height=120, fx=300, fy=280, cx=70.0, cy=52.0, mount_height=0.5)
+    with BinSimulator(SceneConfig(object="wooden_block", instances=1, camera=cam)) as sim:
+        scene = sim.render(3)
+    floor = scene.depth[scene.labels == 0]
+    # bin floor visible in most of the image is at the mount height (z-buffer -> metres)
+    assert np.median(floor) == pytest.approx(0.5, abs=1e-3)
+    ys, xs = np.nonzero(scene.labels == 1)
+    u, v = cam.project(scene.poses[:, :3])[0]
+    assert abs(xs.mean() - u) < 3 and abs(ys.mean() - v) < 3
+    # the depth at the object's centre is the camera height minus the object's height there
+    assert scene.depth[int(round(v)), int(round(u))] < 0.5 - 0.005
+
+
+def test_same_seed_same_scene_whatever_came_before():
+    cfg = SceneConfig(object="bolt")
+    with BinSimulator(cfg) as a, BinSimulator(cfg) as b:
+        a.render(1)
+        a.render(2)
+        x, y = a.render(7), b.render(7)
+    assert np.array_equal(x.depth, y.depth) and np.array_equal(x.labels, y.labels)
+    with BinSimulator(cfg) as c:
+        assert not np.array_equal(c.render(8).labels, x.labels)
+
+
+@pytest.mark.parametrize("name", list(OBJECTS))
+def test_every_object_makes_a_plausible_bin(name):
+    cfg = SceneConfig(object=name, instances=5)
+    with BinSimulator(cfg) as sim:
+        scene = sim.render(0)
+    cam = cfg.camera
+    assert scene.depth.shape == (cam.height, cam.width) and scene.depth.dtype == np.float32
+    assert scene.labels.dtype == np.uint8
+    visible = [k for k in range(1, 6) if (scene.labels == k).sum() > 20]
+    assert len(visible) >= 4, f"{name}: only {len(visible)} of 5 instances visible"
+    assert set(np.unique(scene.labels)) <= set(range(6))
+    # objects lie on the bin floor: above it (nearer the camera), within an object's size
+    obj = scene.depth[scene.labels > 0]
+    assert (obj < cam.mount_height - 0.001).mean() > 0.95
+    assert obj.min() > cam.mount_height - 0.1
+    # every object is inside the bin
+    half = np.asarray(cfg.bin.inner_size) / 2
+    assert (np.abs(scene.poses[:, :2]) < half).all()
+
+
+def test_hex_nut_has_a_real_hole():
+    # a nut lying flat shows the floor (or what is below) through its hole
+    cfg = SceneConfig(object="hex_nut", instances=1)
+    with BinSimulator(cfg) as sim:
+        for seed in range(20):
+            s = sim.render(seed)
+            q = s.poses[0, 3:]
+            tilt = 1 - 2 * (q[0] ** 2 + q[1] ** 2)  # z of the nut's axis in the world
+            if abs(tilt) > 0.99:
+                u, v = cfg.camera.project(s.poses[:, :3])[0]
+                assert s.labels[int(round(v)), int(round(u))] == 0
+                return
+    pytest.skip("no flat-lying nut in 20 drops")
+
+
+def test_realsense_preset_and_noise_model():
+    cam = get_camera("realsense_d435")
+    assert (cam.width, cam.height) == (848, 480)
+    cfg = SceneConfig(object="wooden_block", instances=4, camera=cam, noise=get_noise("realsense"))
+    with BinSimulator(cfg) as sim:
+        s = sim.render(0)
+    assert s.depth.shape == (480, 848)
+    valid = s.depth > 0
+    assert 0.001 < (~valid).mean() < 0.2, "some pixels are lost, most are not"
+    np.testing.assert_allclose(s.depth[valid] * 1000, np.round(s.depth[valid] * 1000), atol=1e-3)
+
+
+def test_noise_statistics():
+    rng = np.random.default_rng(0)
+    clean = np.full((200, 200), 0.5, np.float32)
+    noisy = apply_noise(clean, NoiseConfig(sigma_base=0.002), rng)
+    assert np.std(noisy - clean) == pytest.approx(0.002, rel=0.05)
+    edge = clean.copy()
+    edge[:, 100:] = 0.45
+    lost = apply_noise(edge, NoiseConfig(edge_dropout=1.0), rng) == 0
+    assert lost[:, 98:102].all() and not lost[:, :90].any()
+    with pytest.raises(ValueError, match="probability"):
+        NoiseConfig(random_dropout=2.0)
+
+
+def test_bad_configs_are_rejected_clearly():
+    with pytest.raises(ValueError, match="instances must be in 1..20"):
+        SceneConfig(instances=0)
+    with pytest.raises(ValueError, match="unknown camera preset 'kinect'; valid: default"):
+        get_camera("kinect")
