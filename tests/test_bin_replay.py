@@ -1,0 +1,148 @@
+"""bin_replay as a real process; a separate rclpy process receives its frames over DDS."""
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import BAGS, installed_executable
+
+from inseggan_ros import bags
+from inseggan_ros.image_codec import metres_to_depth
+from inseggan_ros.sim.dataset import scene_seed
+from inseggan_ros.sim.scene import BinSimulator, SceneConfig
+
+HERE = Path(__file__).parent
+
+
+def start_replay(ns, *params):
+    args = [str(installed_executable("bin_replay")), "--ros-args", "-r", f"__ns:={ns}"]
+    for p in params:
+        args += ["-p", p]
+    return subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def stop(proc):
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    return proc.returncode
+
+
+def receive(tmp, ns, count, *params, timeout=60):
+    """Start a receiver process, then bin_replay; return the frames the receiver got."""
+    out = tmp / "received.npz"
+    recv = subprocess.Popen([sys.executable, str(HERE / "receiver.py"), str(out), str(count),
+                             str(timeout), ns], stdout=subprocess.PIPE, text=True)
+    assert recv.stdout.readline().strip() == "receiver ready"
+    replay = start_replay(ns, *params)
+    try:
+        assert recv.wait(timeout=timeout + 30) == 0, "receiver did not get its frames"
+    finally:
+        rc = stop(replay)
+        log = replay.stderr.read()
+    assert rc == 0, log
+    assert "Traceback" not in log
+    return dict(np.load(out, allow_pickle=True))
+
+
+def test_simulated_frames_arrive_over_dds(tmp):
+    got = receive(tmp, "/sim_test", 4, "object:=cone", "seed:=5", "rate:=10.0")
+    cfg = SceneConfig(object="cone")
+    with BinSimulator(cfg) as sim:
+        expected = [sim.render(scene_seed(5, "test", k)) for k in range(60)]
+    matched = []
+    for depth, labels, K in zip(got["depth"], got["labels"], got["K"]):
+        ks = [k for k, s in enumerate(expected)
+              if np.array_equal(depth, metres_to_depth(s.depth, "16UC1"))]
+        assert len(ks) == 1, "received frame is not one of the simulated scenes"
+        np.testing.assert_array_equal(labels, expected[ks[0]].labels)
+        np.testing.assert_allclose(np.asarray(K, float).reshape(3, 3), cfg.camera.K)
+        matched.append(ks[0])
+    assert matched == sorted(matched) and len(set(matched)) == 4
+    assert set(got["encoding"]) == {"16UC1"}
+    assert set(got["frame_id"]) == {"camera_depth_optical_frame"}
+    stamps = got["stamp"]
+    assert (np.diff(stamps) > 0).all() and abs(stamps[-1] / 1e9 - time.time()) < 60
+
+
+@pytest.mark.parametrize("bag", ["cylinder_sim", "hex_nut_sim_32fc1"])
+def test_bag_frames_arrive_with_their_stamps(tmp, bag):
+    source = {f.stamp_ns: f for f in bags.read_all(BAGS / bag)}
+    got = receive(tmp, f"/bag_{bag}", 5, "source:=bag", f"bag_path:={BAGS / bag}",
+                  "loop:=true", "rate:=20.0", "restamp:=false")
+    for stamp, depth, labels, enc, fid in zip(got["stamp"], got["depth"], got["labels"],
+                                              got["encoding"], got["frame_id"]):
+        f = source[int(stamp)]  # the bag's own header stamp came through
+        assert enc == f.encoding and fid == f.frame_id
+        np.testing.assert_array_equal(depth, f.depth)
+        np.testing.assert_array_equal(labels, f.labels)
+
+
+def test_shipped_bag_by_name_with_recorded_timing_stops_at_the_end(tmp):
+    # bag_path may name a shipped bag; without loop the node stops when the bag ends.
+    replay = start_replay("/once", "source:=bag", "bag_path:=cylinder_sim", "rate:=0.0")
+    try:
+        t0 = time.monotonic()
+        assert replay.wait(timeout=60) == 0
+        elapsed = time.monotonic() - t0
+    finally:
+        stop(replay)
+    log = replay.stderr.read()
+    assert "published 16 frames" in log
+    assert elapsed > 1.4, "16 frames recorded at 10 Hz take 1.5 s at the recorded timing"
+
+
+def test_max_frames_ends_the_node(tmp):
+    replay = start_replay("/maxf", "max_frames:=3", "rate:=30.0")
+    try:
+        assert replay.wait(timeout=60) == 0
+    finally:
+        stop(replay)
+    assert "published 3 frames" in replay.stderr.read()
+
+
+@pytest.mark.parametrize("params,message", [
+    (["object:=teapot"], "parameter object='teapot' invalid; valid: cylinder, cone"),
+    (["instances:=99"], "parameter instances"),
+    (["source:=camera"], "parameter source='camera' invalid; valid: sim, bag"),
+    (["rate:=0.0"], "rate=0.0 invalid for source 'sim'"),
+    (["source:=bag", "bag_path:=/no/such/bag"], "/no/such/bag: no such bag"),
+    (["source:=bag", "bag_path:=not_shipped"], "shipped bags: cylinder_sim"),
+    (["source:=bag", "bag_path:=cylinder_sim", "topic:=/nope"],
+     "topic '/nope' is not in the bag; topics: /camera/depth/camera_info"),
+])
+def test_bad_parameters_fail_at_start_with_one_clear_line(params, message):
+    replay = start_replay("/bad", *params)
+    try:
+        rc = replay.wait(timeout=60)
+    finally:
+        stop(replay)
+    err = replay.stderr.read()
+    assert rc == 1
+    assert message in err, err
+    assert "Traceback" not in err
+    assert len([line for line in err.splitlines() if "error" in line]) == 1, err
+
+
+def test_parameter_changes_are_validated_at_run_time():
+    replay = start_replay("/params", "rate:=5.0")
+    try:
+        def set_param(name, value):
+            p = subprocess.run([sys.executable, str(HERE / "set_param.py"), "/params/bin_replay",
+                                name, value], capture_output=True, text=True, timeout=60)
+            return p.stdout.strip()
+
+        assert set_param("rate", "20.0") == "ok"
+        assert set_param("rate", "0.0").startswith("rejected: parameter rate=0.0 invalid")
+        assert set_param("rate", "5000.0").startswith("rejected")  # outside 0..1000
+        assert set_param("object", "'bolt'").startswith("rejected")  # read-only
+        assert replay.poll() is None, "the node keeps running"
+    finally:
+        assert stop(replay) == 0
