@@ -24,6 +24,7 @@ setup(
         ("share/" + package_name, ["package.xml", "README.md"]),
     ] + share_tree("models") + share_tree("bags"),
     install_requires=["setuptools"],
+    extras_require={"test": ["pytest"]},
     zip_safe=True,
     maintainer="inseggan_ros developers",
     maintainer_email="dev@inseggan-ros.invalid",

@@ -6,10 +6,12 @@ set -uo pipefail
 cd "$(dirname "$0")/.."
 if [ -z "${ROS_DISTRO:-}" ] && [ -f .venv/bin/activate ]; then
   # shellcheck disable=SC1091
-  source .venv/bin/activate
+  source .venv/bin/activate  # no apt ROS 2 sourced: use the PyPI one in .venv
 fi
+set +u  # colcon's setup scripts read unset variables
 # shellcheck disable=SC1091
 source install/setup.bash
+set -u
 # DDS traffic stays on this machine, in a domain of this run's own.
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 export ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-$(( $$ % 90 + 5 ))}
