@@ -26,7 +26,9 @@ def colorize_depth(depth_m: np.ndarray) -> np.ndarray:
     valid = np.isfinite(d) & (d > 0)
     if not valid.any():
         return np.zeros((*d.shape, 3), np.uint8)
-    lo, hi = np.percentile(d[valid], [1, 99.5])
+    # far end: the bin floor (the most common depth); near end: the nearest few pixels, so
+    # that objects on the floor use the whole colour range and bin walls saturate
+    lo, hi = np.percentile(d[valid], [0.5, 60])
     g = np.clip((hi - d) / max(hi - lo, 1e-6), 0, 1)
     rgb = cv2.applyColorMap((g * 255).astype(np.uint8), cv2.COLORMAP_VIRIDIS)[..., ::-1]
     rgb[~valid] = 0
