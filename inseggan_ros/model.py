@@ -1,0 +1,207 @@
+"""InSeGAN (Cherian et al., ICCV 2021) in plain PyTorch: generator, discriminator, encoder.
+
+Images are 64x64 depth maps in [-1, 1] (bin floor at -1). A scene is n latent codes z_i ~ N(0, I_d).
+
+Generator G = renderer o compose o F:
+  * pose decoder Gp: z -> axis-angle rotation + translation -> [R | t] (Rodrigues);
+  * implicit template: a learned (nf, 4, 4, 4) tensor, upsampled by 3D ResBlocks to (nf/4, 16^3);
+    it does not depend on z, so it is computed once per batch;
+  * STN: the template resampled by [R | t] (affine_grid + grid_sample, trilinear);
+  * instance feature F(z): two 3D convs, depth folded into channels, one 2D conv -> (2nf, 16, 16);
+  * compose + render. `composite="average"` is the paper: average the n feature maps, render once
+    (ConvTranspose x2 + tanh). `composite="zbuffer"` renders every instance alone with the same
+    renderer and keeps, per pixel, the nearest (max) depth: exactly what inference does, so
+    training and test see the same thing.
+Discriminator D: 4 strided convs (InstanceNorm, LeakyReLU 0.2) and a 4x4 conv to one logit.
+Encoder E: the same trunk; its first two convs ("derenderer") give a (2nf, 16, 16) map that is
+compared with the generator's mean instance feature; the rest gives n x d codes.
+Nothing here imports ROS or the rest of the package.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    n_instances: int = 5
+    latent_dim: int = 128
+    nf: int = 64
+    image_size: int = 64
+    composite: str = "average"  # "average" (paper) or "zbuffer" (render alone, nearest wins)
+    rotation_std: float = 1.0  # initial spread of decoded rotations, radians
+    translation_std: float = 0.35  # initial spread of decoded translations, affine-grid units
+    spectral_norm: bool = False  # spectral normalisation in the discriminator
+
+    def __post_init__(self):
+        if self.image_size != 64:
+            raise ValueError(f"image_size must be 64 (the architecture's size), got {self.image_size}")
+        if self.nf < 8 or self.nf % 8:
+            raise ValueError(f"nf must be a multiple of 8 and >= 8, got {self.nf}")
+        if self.latent_dim < 8 or self.latent_dim % 4:
+            raise ValueError(f"latent_dim must be a multiple of 4 and >= 8, got {self.latent_dim}")
+        if not 1 <= self.n_instances <= 20:
+            raise ValueError(f"n_instances must be in 1..20, got {self.n_instances}")
+        if self.composite not in ("average", "zbuffer"):
+            raise ValueError(f"composite {self.composite!r} invalid; valid: average, zbuffer")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def init_weights(module: nn.Module) -> None:
+    """Conv weights N(0, 0.02), as the paper's reference code."""
+    for m in module.modules():
+        if isinstance(m, (nn.Conv2d, nn.Conv3d, nn.ConvTranspose2d, nn.Linear)):
+            nn.init.normal_(m.weight, 0.0, 0.02)
+            if m.bias is not None:
+                nn.init.zeros_(m.bias)
+
+
+def rodrigues(axis_angle: torch.Tensor) -> torch.Tensor:
+    """(B, 3) axis-angle -> (B, 3, 3) rotation matrices."""
+    theta = axis_angle.norm(dim=1, keepdim=True).clamp_min(1e-8)
+    k = axis_angle / theta
+    K = torch.zeros(axis_angle.shape[0], 3, 3, device=axis_angle.device, dtype=axis_angle.dtype)
+    K[:, 0, 1], K[:, 0, 2] = -k[:, 2], k[:, 1]
+    K[:, 1, 0], K[:, 1, 2] = k[:, 2], -k[:, 0]
+    K[:, 2, 0], K[:, 2, 1] = -k[:, 1], k[:, 0]
+    s, c = torch.sin(theta)[..., None], torch.cos(theta)[..., None]
+    eye = torch.eye(3, device=axis_angle.device, dtype=axis_angle.dtype).expand_as(K)
+    return eye + s * K + (1 - c) * (K @ K)
+
+
+class ResBlock3d(nn.Module):
+    def __init__(self, cin: int, cout: int):
+        super().__init__()
+        self.body = nn.Sequential(
+            nn.InstanceNorm3d(cin), nn.LeakyReLU(0.2), nn.Conv3d(cin, cout, 3, 1, 1),
+            nn.InstanceNorm3d(cout), nn.LeakyReLU(0.2), nn.Conv3d(cout, cout, 3, 1, 1))
+        self.bypass = nn.Conv3d(cin, cout, 1)
+
+    def forward(self, x):
+        return self.body(x) + self.bypass(x)
+
+
+class Generator(nn.Module):
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.cfg = cfg
+        d, nf = cfg.latent_dim, cfg.nf
+        self.pose = nn.Sequential(nn.Linear(d, d // 2, bias=False), nn.LeakyReLU(0.2),
+                                  nn.Linear(d // 2, d // 4, bias=False), nn.LeakyReLU(0.2),
+                                  nn.Linear(d // 4, 6, bias=False))
+        self.template = nn.Parameter(torch.randn(1, nf, 4, 4, 4))
+        self.template_net = nn.Sequential(
+            ResBlock3d(nf, nf // 2), nn.Upsample(scale_factor=2, mode="nearest"),
+            nn.InstanceNorm3d(nf // 2, affine=True),
+            ResBlock3d(nf // 2, nf // 4), nn.Upsample(scale_factor=2, mode="nearest"),
+            nn.InstanceNorm3d(nf // 4, affine=True))
+        self.feature3d = nn.Sequential(
+            nn.Conv3d(nf // 4, nf // 8, 3, 1, 1), nn.InstanceNorm3d(nf // 8, affine=True), nn.ReLU(),
+            nn.Conv3d(nf // 8, nf // 8, 3, 1, 1), nn.InstanceNorm3d(nf // 8, affine=True), nn.ReLU())
+        self.feature2d = nn.Sequential(
+            nn.Conv2d(nf // 8 * 16, 2 * nf, 3, 1, 1), nn.InstanceNorm2d(2 * nf, affine=True), nn.ReLU())
+        self.renderer = nn.Sequential(
+            nn.ConvTranspose2d(2 * nf, nf, 4, 2, 1), nn.InstanceNorm2d(nf, affine=True), nn.ReLU(),
+            nn.ConvTranspose2d(nf, 1, 4, 2, 1), nn.Tanh())
+        init_weights(self)
+        self._spread_poses()
+
+    @torch.no_grad()
+    def _spread_poses(self) -> None:
+        """Rescale the pose decoder's last layer so that initial poses spread over the bin.
+
+        With N(0, 0.02) weights every decoded pose is ~0: all instances land in one place and
+        training collapses (measured on a prototype); rotations ~1 rad and translations ~0.35
+        grid units apart gave a run that learned.
+        """
+        z = torch.randn(4096, self.cfg.latent_dim, generator=torch.Generator().manual_seed(0))
+        h = self.pose[:-1](z)
+        std = self.pose[-1](h).std(0).clamp_min(1e-8)
+        target = torch.tensor([self.cfg.rotation_std] * 3 + [self.cfg.translation_std] * 3)
+        self.pose[-1].weight.mul_((target / std)[:, None])
+
+    def poses(self, z: torch.Tensor) -> torch.Tensor:
+        """(M, d) codes -> (M, 3, 4) affine [R | t] for the spatial transformer."""
+        p = self.pose(z)
+        return torch.cat([rodrigues(p[:, :3]), p[:, 3:, None]], dim=2)
+
+    def instance_features(self, z: torch.Tensor) -> torch.Tensor:
+        """(B, n, d) codes -> (B, n, 2nf, 16, 16) single-instance feature maps F(z_i)."""
+        B, n, d = z.shape
+        volume = self.template_net(self.template)  # (1, C, 16, 16, 16), once per batch
+        theta = self.poses(z.reshape(B * n, d)).to(volume.dtype)
+        C = volume.shape[1]
+        grid = F.affine_grid(theta, [B * n, C, 16, 16, 16], align_corners=True)
+        v = volume.expand(B * n, -1, -1, -1, -1).contiguous(memory_format=torch.channels_last_3d)
+        v = F.grid_sample(v, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
+        v = self.feature3d(v.contiguous(memory_format=torch.channels_last_3d))
+        f = self.feature2d(v.reshape(B * n, -1, 16, 16).contiguous())
+        return f.reshape(B, n, *f.shape[1:])
+
+    def render(self, features: torch.Tensor) -> torch.Tensor:
+        """(M, 2nf, 16, 16) -> (M, 1, 64, 64) depth in [-1, 1]."""
+        return self.renderer(features)
+
+    def _render_each(self, f: torch.Tensor) -> torch.Tensor:
+        """(B, n, 2nf, 16, 16) -> (B, n, 64, 64): every instance rendered alone."""
+        B, n = f.shape[:2]
+        return self.render(f.flatten(0, 1)).reshape(B, n, self.cfg.image_size, self.cfg.image_size)
+
+    def render_instances(self, z: torch.Tensor) -> torch.Tensor:
+        """(B, n, d) -> (B, n, 64, 64): every instance rendered alone (inference)."""
+        return self._render_each(self.instance_features(z))
+
+    def forward(self, z: torch.Tensor, return_features: bool = False):
+        """(B, n, d) -> (B, 1, 64, 64) multi-instance depth (and the mean instance feature)."""
+        f = self.instance_features(z)
+        mean_f = f.mean(1)
+        if self.cfg.composite == "average":
+            x = self.render(mean_f)
+        else:  # z-buffer: per pixel the nearest surface (largest height) wins
+            x = self._render_each(f).amax(dim=1, keepdim=True)
+        return (x, mean_f) if return_features else x
+
+
+def _trunk(nf: int, sn: bool = False) -> list[nn.Module]:
+    wrap = nn.utils.spectral_norm if sn else (lambda m: m)
+    return [wrap(nn.Conv2d(1, nf, 4, 2, 1)), nn.LeakyReLU(0.2),
+            wrap(nn.Conv2d(nf, 2 * nf, 4, 2, 1)), nn.InstanceNorm2d(2 * nf, affine=True), nn.LeakyReLU(0.2),
+            wrap(nn.Conv2d(2 * nf, 4 * nf, 4, 2, 1)), nn.InstanceNorm2d(4 * nf, affine=True), nn.LeakyReLU(0.2),
+            wrap(nn.Conv2d(4 * nf, 8 * nf, 4, 2, 1)), nn.InstanceNorm2d(8 * nf, affine=True), nn.LeakyReLU(0.2)]
+
+
+class Discriminator(nn.Module):
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        wrap = nn.utils.spectral_norm if cfg.spectral_norm else (lambda m: m)
+        self.net = nn.Sequential(*_trunk(cfg.nf, cfg.spectral_norm),
+                                 wrap(nn.Conv2d(8 * cfg.nf, 1, 4, 1, 0)))
+        init_weights(self)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.net(x).flatten(1)  # (B, 1) logits
+
+
+class Encoder(nn.Module):
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.cfg = cfg
+        layers = _trunk(cfg.nf)
+        self.derender = nn.Sequential(*layers[:5])  # -> (2nf, 16, 16), compared with mean F
+        self.head = nn.Sequential(*layers[5:], nn.Conv2d(8 * cfg.nf, cfg.n_instances * cfg.latent_dim, 4, 1, 0))
+        init_weights(self)
+
+    def forward(self, x: torch.Tensor, return_features: bool = False):
+        h = self.derender(x)
+        z = self.head(h).reshape(x.shape[0], self.cfg.n_instances, self.cfg.latent_dim)
+        return (z, h) if return_features else z
+
+
+def build(cfg: ModelConfig) -> tuple[Generator, Discriminator, Encoder]:
+    return Generator(cfg), Discriminator(cfg), Encoder(cfg)
