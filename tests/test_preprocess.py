@@ -1,0 +1,223 @@
+"""preprocess: bin finding, floor-relative heights, the 64 x 64 model input and back."""
+import json
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from inseggan_ros.preprocess import (PreprocessConfig, estimate_floor, fill_missing,
+                                     find_bin_roi, labels_to_full, masks_to_full, prepare,
+                                     prepare_batch, resize_labels, roi_from_camera)
+from inseggan_ros.sim.camera import get_camera
+from inseggan_ros.sim.noise import get_noise
+from inseggan_ros.sim.scene import BinSimulator, SceneConfig
+
+CASES = [("default", "none", "cylinder"), ("default", "realsense", "hex_nut"),
+         ("realsense_d435", "none", "wooden_block"), ("realsense_d435", "realsense", "cylinder")]
+
+
+@pytest.fixture(scope="module")
+def frames():
+    """{(camera, noise, object): (scene config, scene)} rendered by the real simulator."""
+    out = {}
+    for cam, noise, obj in CASES:
+        cfg = SceneConfig(object=obj, camera=get_camera(cam), noise=get_noise(noise))
+        with BinSimulator(cfg) as sim:
+            out[cam, noise, obj] = cfg, sim.render(7)
+    return out
+
+
+def gt_iou(prep, labels):
+    """IoU of the 64 x 64 foreground with the resized ground-truth objects (not fg-masked)."""
+    x0, y0, x1, y1 = prep.roi
+    s = prep.size
+    rows = np.minimum(((np.arange(s) + 0.5) * (y1 - y0) / s).astype(int), y1 - y0 - 1)
+    cols = np.minimum(((np.arange(s) + 0.5) * (x1 - x0) / s).astype(int), x1 - x0 - 1)
+    gt = labels[y0:y1, x0:x1][rows][:, cols] > 0
+    return (gt & prep.fg).sum() / (gt | prep.fg).sum()
+
+
+# ------------------------------------------------------------------------------ config
+def test_config_validates_and_round_trips():
+    cfg = PreprocessConfig(roi=[10, 20, 110, 120], polygon=[(10, 20), (110, 20), (60, 120)],
+                           floor_depth=0.4)
+    assert cfg.roi == (10, 20, 110, 120) and isinstance(cfg.polygon, tuple)
+    assert PreprocessConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+    assert PreprocessConfig.from_dict(PreprocessConfig().to_dict()) == PreprocessConfig()
+    for kwargs, message in [({"size": 4}, "size 4 invalid; valid"),
+                            ({"roi": (5, 5, 5, 10)}, "0 <= x0 < x1"),
+                            ({"roi": (1, 2, 3)}, "four integers"),
+                            ({"polygon": [(0, 0), (1, 1)]}, "at least 3"),
+                            ({"floor_depth": 0.0}, "floor_depth 0.0 invalid"),
+                            ({"floor_depth": float("nan")}, "metres > 0"),
+                            ({"min_height": 0.06}, "min_height 0.06 invalid"),
+                            ({"max_height": -1.0}, "max_height -1.0 invalid"),
+                            ({"margin": -1}, "margin -1 invalid")]:
+        with pytest.raises(ValueError, match=message):
+            PreprocessConfig(**kwargs)
+    with pytest.raises(ValueError, match="unknown preprocessing keys"):
+        PreprocessConfig.from_dict({"sise": 64})
+
+
+# ------------------------------------------------------------------------------ the bin
+def test_find_bin_roi_agrees_with_the_camera_projection(frames):
+    for (cam, noise, obj), (cfg, scene) in frames.items():
+        found = np.array(find_bin_roi(scene.depth))
+        known = np.array(roi_from_camera(cfg.camera, cfg.bin))
+        assert np.abs(found - known).max() <= 3, (cam, noise, found, known)
+
+
+def test_roi_from_camera_takes_whole_pixels_inside_the_floor():
+    cam, b = get_camera("default"), SceneConfig().bin
+    # floor corners project to u, v = 111.5 -+ 75 = 36.5 .. 186.5: pixels 37..186 lie inside
+    assert roi_from_camera(cam, b) == (37, 37, 187, 187)
+    x0, y0, x1, y1 = roi_from_camera(get_camera("realsense_d435"), b)
+    assert 0 < x0 < x1 < 848 and 0 < y0 < y1 < 480
+
+
+def test_find_bin_roi_without_a_bin_says_what_to_do():
+    with pytest.raises(ValueError, match="no bin found.*`roi` parameter"):
+        find_bin_roi(np.full((100, 120), 0.5, np.float32))
+
+
+# ------------------------------------------------------------------------------ prepare
+def test_prepare_background_is_exactly_minus_one_and_covers_the_objects(frames):
+    for (cam, noise, obj), (cfg, scene) in frames.items():
+        p = prepare(scene.depth, PreprocessConfig())
+        assert p.x.shape == (64, 64) and p.x.dtype == np.float32 and p.fg.dtype == bool
+        assert np.all(p.x[~p.fg] == -1.0) and np.all(p.x[p.fg] > -1.0) and p.x.max() <= 1.0
+        assert p.full_fg.shape == scene.depth.shape
+        assert abs(p.floor_depth - cfg.camera.mount_height) < 0.001, (cam, noise)
+        assert gt_iou(p, scene.labels) > 0.8, (cam, noise, obj)
+        # the known bin and floor give (nearly) the same input
+        q = prepare(scene.depth, PreprocessConfig(roi=roi_from_camera(cfg.camera, cfg.bin),
+                                                  floor_depth=cfg.camera.mount_height))
+        assert gt_iou(q, scene.labels) > 0.8
+        # full-resolution foreground: objects, not floor or walls
+        objects = scene.labels > 0
+        assert (p.full_fg & objects).sum() / (p.full_fg | objects).sum() > 0.85, (cam, noise)
+
+
+def test_heights_are_mapped_linearly():
+    depth = np.full((120, 120), 0.6, np.float32)
+    depth[:, :5] = depth[:, -5:] = depth[:5] = depth[-5:] = 0.5  # walls
+    depth[20:60, 20:60] = 0.6 - 0.025  # 25 mm: half of max_height
+    depth[70:100, 70:100] = 0.6 - 0.2  # far above max_height
+    cfg = PreprocessConfig(roi=(5, 5, 115, 115), margin=0, size=110)
+    p = prepare(depth, cfg)
+    assert p.floor_depth == pytest.approx(0.6, abs=1e-6)
+    assert p.x[30, 30] == pytest.approx(0.0, abs=1e-4) and p.x[80, 80] == 1.0
+    assert p.x[5, 100] == -1.0 and p.x[57:63, 57:63].max() == -1.0
+
+
+def test_labels_to_full_only_on_input_foreground(frames):
+    cfg, scene = frames["realsense_d435", "realsense", "cylinder"]
+    p = prepare(scene.depth, PreprocessConfig())
+    lab64 = resize_labels(scene.labels, p)
+    assert lab64.shape == (64, 64) and lab64.dtype == np.uint8
+    assert not lab64[~p.fg].any() and set(np.unique(lab64)) <= set(np.unique(scene.labels))
+    full = labels_to_full(lab64, p)
+    assert full.shape == scene.depth.shape and full.dtype == lab64.dtype
+    assert not full[~p.full_fg].any()
+    fg = p.full_fg & (full > 0)
+    assert (full[fg] == scene.labels[fg]).mean() > 0.9  # round trip through 64 x 64
+    everything = labels_to_full(np.ones((64, 64), np.int64), p)
+    assert np.array_equal(everything > 0, p.full_fg)
+    masks = masks_to_full(np.stack([lab64 == k for k in (1, 2)]), p)
+    assert masks.shape == (2, *scene.depth.shape)
+    assert np.array_equal(masks[0], full == 1) and np.array_equal(masks[1], full == 2)
+    with pytest.raises(ValueError, match=r"valid: \(64, 64\)"):
+        labels_to_full(np.zeros((32, 32), np.uint8), p)
+    with pytest.raises(ValueError, match="the depth frame's shape"):
+        resize_labels(lab64, p)
+
+
+def _free_square(mask, side, rng):
+    """Top-left corner of a side x side square where mask is all False."""
+    free = ndimage.minimum_filter(~mask, side, origin=-(side // 2))
+    r, c = rng.choice(np.argwhere(free))
+    return slice(r, r + side), slice(c, c + side)
+
+
+def test_missing_and_nan_pixels_make_no_fake_objects(frames):
+    cfg, scene = frames["default", "none", "cylinder"]
+    clean = prepare(scene.depth, PreprocessConfig())
+    rng = np.random.default_rng(0)
+    objects = scene.labels > 0
+    roi = np.zeros_like(objects)
+    roi[slice(clean.roi[1], clean.roi[3]), slice(clean.roi[0], clean.roi[2])] = True
+    holes = rng.random(scene.depth.shape) < 0.1  # scattered, edges included
+    on_floor = _free_square(ndimage.binary_dilation(objects, iterations=3) | ~roi, 20, rng)
+    in_object = _free_square(~ndimage.binary_erosion(objects, iterations=3), 6, rng)
+    holes[on_floor] = holes[in_object] = True
+    holes[:, :3] = True  # outside the bin too
+    zero = np.where(holes, 0, scene.depth).astype(np.float32)
+    nan = np.where(holes, np.nan, scene.depth).astype(np.float32)
+    inf = np.where(holes, np.inf, scene.depth).astype(np.float32)
+    a, b, c = (prepare(d, PreprocessConfig()) for d in (zero, nan, inf))
+    assert np.array_equal(a.x, b.x) and np.array_equal(a.x, c.x) and a.roi == b.roi == c.roi
+    assert np.all(a.x[~a.fg] == -1.0) and np.isfinite(a.x).all()
+    assert a.roi == clean.roi and abs(a.floor_depth - clean.floor_depth) < 1e-4
+    # no foreground where there was none (up to a pixel of edge), and the objects stay
+    assert not a.full_fg[on_floor].any() and a.full_fg[in_object].all()
+    assert not (a.full_fg & ~ndimage.binary_dilation(clean.full_fg)).any()
+    assert not (a.fg & ~ndimage.binary_dilation(clean.fg)).any()
+    assert (a.fg & clean.fg).sum() / (a.fg | clean.fg).sum() > 0.9
+    assert gt_iou(a, scene.labels) > 0.8
+
+
+def test_fill_missing_takes_the_nearest_valid_pixel():
+    rng = np.random.default_rng(1)
+    values = rng.random((40, 50)).astype(np.float32)
+    valid = rng.random((40, 50)) < 0.3
+    filled = fill_missing(values, valid)
+    assert np.array_equal(filled[valid], values[valid])
+    dist = ndimage.distance_transform_edt(~valid)
+    # each filled value comes from a valid pixel about as near as the nearest one
+    for r, c in zip(*np.nonzero(~valid)):
+        src = np.argwhere(valid & (values == filled[r, c]))
+        assert np.hypot(*(src - (r, c)).T).min() <= dist[r, c] * 1.1 + 0.5
+
+
+def test_floor_estimate_ignores_objects_and_stray_far_pixels():
+    rng = np.random.default_rng(2)
+    floor = 0.5 + rng.normal(0, 0.001, 3000)  # a crowded bin: little floor left
+    objects = 0.5 - rng.uniform(0.005, 0.04, 8000)
+    stray = rng.uniform(0.6, 2.0, 50)
+    assert estimate_floor(np.concatenate([floor, objects, stray])) == pytest.approx(0.5, abs=0.0005)
+
+
+def test_polygon_masks_outside_pixels():
+    depth = np.full((100, 100), 0.5, np.float32)
+    depth[10:30, 50:70] = 0.48  # inside the triangle (v < u)
+    depth[70:90, 10:20] = 0.48  # outside it
+    tri = ((5, 5), (95, 5), (95, 95))
+    p = prepare(depth, PreprocessConfig(polygon=tri, floor_depth=0.5, margin=0))
+    assert p.full_fg[20, 60] and not p.full_fg[80, 15]
+    assert p.full_fg.sum() == 400 and p.roi == (5, 5, 96, 96)
+
+
+def test_bad_frames_raise_clear_errors():
+    cfg = PreprocessConfig(roi=(0, 0, 10, 10))
+    with pytest.raises(ValueError, match="no valid depth"):
+        prepare(np.zeros((48, 64), np.float32), cfg)
+    with pytest.raises(ValueError, match="no valid depth"):
+        prepare(np.full((48, 64), np.nan, np.float32), PreprocessConfig())
+    with pytest.raises(ValueError, match=r"2-D \(H, W\)"):
+        prepare(np.zeros((4, 48, 64), np.float32), cfg)
+    with pytest.raises(ValueError, match="float metres.*16UC1"):
+        prepare(np.full((48, 64), 500, np.uint16), cfg)
+    with pytest.raises(ValueError, match="negative"):
+        prepare(np.full((48, 64), -0.5, np.float32), cfg)
+    with pytest.raises(ValueError, match="does not fit the 64x48"):
+        prepare(np.full((48, 64), 0.5, np.float32), PreprocessConfig(roi=(0, 0, 100, 10)))
+    with pytest.raises(ValueError, match="too small for margin"):
+        prepare(np.full((48, 64), 0.5, np.float32), PreprocessConfig(roi=(0, 0, 4, 4)))
+
+
+def test_prepare_batch_stacks_model_input(frames):
+    scenes = [s for (cam, *_), (_, s) in frames.items() if cam == "default"]
+    x, preps = prepare_batch([s.depth for s in scenes], PreprocessConfig(size=32))
+    assert x.shape == (2, 1, 32, 32) and x.dtype == np.float32
+    assert np.array_equal(x[1, 0], preps[1].x)
+    assert prepare_batch([], PreprocessConfig())[0].shape == (0, 1, 64, 64)
