@@ -17,7 +17,10 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 from .bags import BagError
+from .checkpoint import CheckpointError
 
 
 def _fractions(text: str) -> tuple[float, float, float]:
@@ -94,6 +97,92 @@ def cmd_simulate_bag(args) -> int:
     print(f"wrote {args.out}: {args.count} frames of {args.instances} x {args.object}, "
           f"{cfg.camera.width}x{cfg.camera.height} {args.encoding}, {args.storage}, "
           f"{size / 1e6:.1f} MB")
+    return 0
+
+
+def _load_training_data(args):
+    """(train, val, preprocess config, description) from a simulated data set or a bag."""
+    from . import data as data_mod
+    from .preprocess import PreprocessConfig
+
+    if args.data:
+        prep = data_mod.sim_preprocess_config(args.data)
+        train = data_mod.load_sim_split(args.data, "train", prep, limit=args.train_frames,
+                                        progress=not args.quiet)
+        val = data_mod.load_sim_split(args.data, "val", prep, limit=args.val_frames)
+        info = {"source": "simulated data set", "path": str(args.data),
+                "train_frames": len(train["x"]), "val_frames": len(val["x"])}
+    else:
+        roi = tuple(int(v) for v in args.roi.split(",")) if args.roi else None
+        prep = PreprocessConfig(roi=roi, min_height=args.min_height, max_height=args.max_height)
+        frames = data_mod.load_bag(args.bag, prep, depth_topic=args.topic,
+                                   progress=not args.quiet)
+        k = max(1, len(frames["x"]) // 10)
+        if len(frames["x"]) < 2 * k:
+            raise ValueError(f"{args.bag}: {len(frames['x'])} frames are too few to train on")
+        split = lambda sl: {key: (v[sl] if isinstance(v, np.ndarray) else v)
+                            for key, v in frames.items()}
+        train, val = split(slice(None, -k)), split(slice(-k, None))
+        info = {"source": "bag", "path": str(args.bag), "topic": args.topic,
+                "train_frames": len(train["x"]), "val_frames": len(val["x"])}
+    return train, val, prep, info
+
+
+def cmd_train(args) -> int:
+    from .train import get_config, train
+
+    cfg = get_config(args.config, nf=args.nf, composite=args.composite,
+                     n_instances=args.instances, batch_size=args.batch_size,
+                     lambda_real=args.lambda_real, matching=args.matching, seed=args.seed,
+                     max_iterations=args.iterations, max_minutes=args.minutes,
+                     eval_every=args.eval_every, checkpoint_every=args.eval_every,
+                     rotate=args.rotate or None)
+    train_data, val_data, prep, info = _load_training_data(args)
+    if val_data.get("labels") is None:
+        print("no labels in the validation frames: validation uses the reconstruction error")
+    t0 = time.perf_counter()
+    summary = train(cfg, train_data, val_data, args.out, prep.to_dict(), info,
+                    device=args.device, resume=args.resume, progress=not args.quiet)
+    print(f"trained {summary['iterations']} iterations in {summary['seconds'] / 60:.1f} min "
+          f"({summary['images_per_s_this_process']:.0f} images/s on {summary['device']}); "
+          f"best validation score {summary['best_score']:.4f} at tau {summary['tau']:.2f}; "
+          f"{summary['resets']} divergence resets; wall time {time.perf_counter() - t0:.0f} s")
+    print(f"checkpoints: {args.out}/best.pt, {args.out}/last.pt; curves: {args.out}/curves.png")
+    return 0
+
+
+def cmd_eval(args) -> int:
+    from . import data as data_mod
+    from . import evaluate
+    from .checkpoint import load_for_inference
+
+    seg = load_for_inference(args.model, device=args.device)
+    n = seg.model_cfg.n_instances
+    if args.data:
+        d = data_mod.load_sim_split(args.data, args.split, seg.prep_cfg, limit=args.frames)
+        source = f"{args.data} ({args.split})"
+    else:
+        d = data_mod.load_bag(args.bag, seg.prep_cfg, depth_topic=args.topic, limit=args.frames)
+        source = str(args.bag)
+    if d.get("labels") is None:
+        raise ValueError(f"{source}: no ground-truth labels to evaluate against")
+    methods = args.methods.split(",") if args.methods else None
+    results = evaluate.run_methods(d, n, seg, methods, progress=not args.quiet)
+    summary = evaluate.summarise(results, len(d["x"]))
+    summary.update({"model": str(args.model), "data": source, "tau": seg.tau})
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    evaluate.write_json(out / "results.json", summary)
+    recon = seg.segment_batch(d["x"][:8], d["fg"][:8])["reconstruction"].cpu().numpy()
+    hard = np.nonzero(results["kmeans"]["scores"] < evaluate.HARD_THRESHOLD)[0] \
+        if "kmeans" in results else []
+    frames = (list(hard[:3]) + [i for i in range(8) if i not in hard[:3]])[:6]
+    frames = [i for i in frames if i < 8]
+    evaluate.qualitative_png(out / "qualitative.png", d, results, recon, frames)
+    print(f"{source}: {summary['frames']} frames, {summary['hard_frames']} hard "
+          f"({summary['hard_rule']}); model {args.model}, tau {seg.tau:.2f}")
+    print(evaluate.format_table(summary))
+    print(f"wrote {out / 'results.json'} and {out / 'qualitative.png'}")
     return 0
 
 
@@ -200,6 +289,48 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="contact_sheet.png")
     p.set_defaults(func=cmd_contact_sheet)
 
+    p = sub.add_parser("train", help="train InSeGAN on a simulated data set or a bag")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--data", type=Path, help="simulated data set (inseggan simulate)")
+    src.add_argument("--bag", type=Path, help="rosbag2 bag of depth frames (unlabelled)")
+    p.add_argument("--topic", help="depth topic in the bag (default: auto)")
+    p.add_argument("--roi", help="bin region x0,y0,x1,y1 in pixels for bags (default: found)")
+    p.add_argument("--min-height", type=float, default=0.006, help="metres above the floor")
+    p.add_argument("--max-height", type=float, default=0.05, help="metres mapped to +1")
+    p.add_argument("--config", default="cpu", help="named config: cpu, paper_cpu, paper")
+    p.add_argument("--out", type=Path, required=True, help="run directory")
+    p.add_argument("--minutes", type=float, help="wall-clock budget")
+    p.add_argument("--iterations", type=int, help="iteration budget")
+    p.add_argument("--batch-size", type=int)
+    p.add_argument("--nf", type=int)
+    p.add_argument("--instances", type=int, help="n (default 5)")
+    p.add_argument("--composite", choices=["average", "zbuffer"])
+    p.add_argument("--lambda-real", type=float)
+    p.add_argument("--matching", choices=["hungarian", "ot", "greedy"])
+    p.add_argument("--rotate", action="store_true", help="augment with +-20 degree rotations")
+    p.add_argument("--eval-every", type=int)
+    p.add_argument("--train-frames", type=int, help="use at most this many training frames")
+    p.add_argument("--val-frames", type=int, default=200)
+    p.add_argument("--seed", type=int)
+    p.add_argument("--device", default="auto", help="auto, cpu, cuda")
+    p.add_argument("--resume", action="store_true", help="continue the run in --out")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_train)
+
+    p = sub.add_parser("eval", help="InSeGAN vs classical baselines (mIoU table, PNG)")
+    p.add_argument("--model", type=Path, required=True)
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--data", type=Path, help="simulated data set")
+    src.add_argument("--bag", type=Path, help="bag with ground-truth labels")
+    p.add_argument("--split", default="test", choices=["train", "val", "test"])
+    p.add_argument("--topic")
+    p.add_argument("--frames", type=int, default=200)
+    p.add_argument("--methods", help="comma-separated baselines (default: all)")
+    p.add_argument("--device", default="auto")
+    p.add_argument("--out", type=Path, default=Path("eval_out"))
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_eval)
+
     p = sub.add_parser("bag-info", help="topics and depth format of a rosbag2 bag")
     p.add_argument("bag")
     p.add_argument("--topic", help="depth topic (default: auto)")
@@ -212,7 +343,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (BagError, ValueError, FileExistsError, FileNotFoundError) as e:
+    except (BagError, CheckpointError, ValueError, FileExistsError, FileNotFoundError) as e:
         print(f"inseggan {args.command}: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -11,7 +11,8 @@ Generator G = renderer o compose o F:
   * compose + render. `composite="average"` is the paper: average the n feature maps, render once
     (ConvTranspose x2 + tanh). `composite="zbuffer"` renders every instance alone with the same
     renderer and keeps, per pixel, the nearest (max) depth: exactly what inference does, so
-    training and test see the same thing.
+    training and test see the same thing (in training a soft max, so that hidden instances
+    still get gradient).
 Discriminator D: 4 strided convs (InstanceNorm, LeakyReLU 0.2) and a 4x4 conv to one logit.
 Encoder E: the same trunk; its first two convs ("derenderer") give a (2nf, 16, 16) map that is
 compared with the generator's mean instance feature; the rest gives n x d codes.
@@ -36,6 +37,7 @@ class ModelConfig:
     rotation_std: float = 1.0  # initial spread of decoded rotations, radians
     translation_std: float = 0.35  # initial spread of decoded translations, affine-grid units
     spectral_norm: bool = False  # spectral normalisation in the discriminator
+    zbuffer_temperature: float = 0.05  # training composite: softmax(d_i / T)-weighted depths
 
     def __post_init__(self):
         if self.image_size != 64:
@@ -92,9 +94,11 @@ class Generator(nn.Module):
         super().__init__()
         self.cfg = cfg
         d, nf = cfg.latent_dim, cfg.nf
-        self.pose = nn.Sequential(nn.Linear(d, d // 2, bias=False), nn.LeakyReLU(0.2),
-                                  nn.Linear(d // 2, d // 4, bias=False), nn.LeakyReLU(0.2),
-                                  nn.Linear(d // 4, 6, bias=False))
+        # d -> d/2 -> d/4 -> 6 as the paper (d = 128); at least 64 -> 32 for small codes
+        h1, h2 = max(d // 2, 64), max(d // 4, 32)
+        self.pose = nn.Sequential(nn.Linear(d, h1, bias=False), nn.LeakyReLU(0.2),
+                                  nn.Linear(h1, h2, bias=False), nn.LeakyReLU(0.2),
+                                  nn.Linear(h2, 6, bias=False))
         self.template = nn.Parameter(torch.randn(1, nf, 4, 4, 4))
         self.template_net = nn.Sequential(
             ResBlock3d(nf, nf // 2), nn.Upsample(scale_factor=2, mode="nearest"),
@@ -164,7 +168,14 @@ class Generator(nn.Module):
         if self.cfg.composite == "average":
             x = self.render(mean_f)
         else:  # z-buffer: per pixel the nearest surface (largest height) wins
-            x = self._render_each(f).amax(dim=1, keepdim=True)
+            singles = self._render_each(f)
+            if self.training and self.cfg.zbuffer_temperature > 0:
+                # soft z-buffer: every instance gets gradient, weighted by how near it is;
+                # where all renders agree (background) the composite equals them exactly
+                w = torch.softmax(singles / self.cfg.zbuffer_temperature, dim=1)
+                x = (w * singles).sum(dim=1, keepdim=True)
+            else:
+                x = singles.amax(dim=1, keepdim=True)
         return (x, mean_f) if return_features else x
 
 

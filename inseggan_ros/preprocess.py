@@ -210,8 +210,9 @@ def find_bin_roi(depth_m: np.ndarray, tolerance: float | None = None) -> Rect:
     """Bounding box (x0, y0, x1, y1, end exclusive) of the bin floor in one depth image.
 
     The floor depth is the most common depth (1 mm histogram mode) of the valid pixels; the
-    floor is the largest connected region (after a 3 x 3 opening) of pixels within `tolerance`
-    (default max(3 mm, 0.5 % of the depth)) of it that does not touch the image border: a
+    floor is the union of the connected regions (after a 3 x 3 opening; the largest and every
+    piece of at least an eighth of the minimum area) of pixels within `tolerance` (default
+    max(3 mm, 0.5 % of the depth)) of it that do not touch the image border: a
     table or ground at the same depth around the bin touches the border, the walls separate it
     from the floor. Images over 400k pixels are searched at half resolution and the box is then
     refined at full resolution. Raises ValueError when there is no such region."""
@@ -226,18 +227,18 @@ def _flat(d: np.ndarray, depth: float, tol: float) -> np.ndarray:
 
 
 def _largest_region(mask: np.ndarray, min_area: int, inner: bool) -> Rect | None:
-    """Bounding box of the largest 8-connected region of a uint8 mask with at least min_area
-    pixels (and, if inner, not touching the border); None if there is none. (Computing only
-    the one box needed is 5 x faster than cv2.connectedComponentsWithStats.)"""
+    """Bounding box of the 8-connected regions of a uint8 mask that (if inner) do not touch the
+    border: the largest one and every other one of at least min_area / 8 pixels (objects lying
+    across the bin cut its floor into pieces); None if the largest has fewer than min_area."""
     n, labels = cv2.connectedComponents(mask, connectivity=8)
     area = np.bincount(labels.ravel(), minlength=n)
     area[0] = 0
     if inner:
         area[np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]])] = 0
-    best = int(np.argmax(area))
-    if area[best] < min_area:
+    if area.max() < min_area:
         return None
-    region = labels == best
+    keep = area >= max(1, min_area // 8)
+    region = keep[labels]
     rows, cols = np.flatnonzero(region.any(1)), np.flatnonzero(region.any(0))
     return int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1
 

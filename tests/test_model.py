@@ -23,7 +23,11 @@ def test_generator_shapes_and_gradients(composite):
     singles = G.render_instances(z)
     assert singles.shape == (4, 3, 64, 64)
     if composite == "zbuffer":  # the composite is the per-pixel max of the single renders
-        torch.testing.assert_close(x[:, 0], singles.amax(1))
+        G.eval()
+        torch.testing.assert_close(G(z)[:, 0], G.render_instances(z).amax(1))
+        G.train()
+        soft = G(z)[:, 0]  # training: a soft max, between the mean and the max
+        assert (soft <= singles.amax(1) + 1e-5).all() and (soft >= singles.mean(1) - 1e-5).all()
     x.mean().backward()
     assert z.grad.abs().sum() > 0
     for name, p in G.named_parameters():

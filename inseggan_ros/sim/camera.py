@@ -17,11 +17,11 @@ import numpy as np
 class CameraConfig:
     width: int = 224
     height: int = 224
-    fx: float = 500.0
-    fy: float = 500.0
+    fx: float = 420.0
+    fy: float = 420.0
     cx: float = 111.5
     cy: float = 111.5
-    mount_height: float = 0.5  # metres above the bin floor
+    mount_height: float = 0.35  # metres above the bin floor
     near: float = 0.05
     far: float = 2.0
 

@@ -23,8 +23,8 @@ from .objects import ObjectSpec, get_object
 
 @dataclass(frozen=True)
 class BinConfig:
-    inner_size: tuple[float, float] = (0.15, 0.15)  # metres (x, y)
-    wall_height: float = 0.08
+    inner_size: tuple[float, float] = (0.09, 0.09)  # metres (x, y)
+    wall_height: float = 0.05
     wall_thickness: float = 0.01
 
     def __post_init__(self):
@@ -46,7 +46,7 @@ class SceneConfig:
     camera: CameraConfig = field(default_factory=CameraConfig)
     bin: BinConfig = field(default_factory=BinConfig)
     noise: NoiseConfig = field(default_factory=NoiseConfig)
-    drop_spread: float = 0.35  # objects drop within this fraction of the bin's inner size
+    drop_spread: float = 0.25  # objects drop within this fraction of the bin's inner size
     time_step: float = 1.0 / 120.0
     settle_speed: float = 0.02  # m/s (and rad/s scaled by the object radius)
     max_settle_steps: int = 240
@@ -178,7 +178,7 @@ class BinSimulator:
     def _inside_bin(self, body: int) -> bool:
         (x, y, z), _ = self.p.getBasePositionAndOrientation(body, physicsClientId=self.client)
         hx, hy = self.cfg.bin.inner_size[0] / 2, self.cfg.bin.inner_size[1] / 2
-        return abs(x) < hx and abs(y) < hy and -0.01 < z < self.cfg.bin.wall_height
+        return abs(x) < hx and abs(y) < hy and z > -0.01  # on the floor or on the pile
 
     # ------------------------------------------------------------------ one scene
     def render(self, seed: int) -> Scene:

@@ -1,0 +1,97 @@
+"""Checkpoints: one file holds the model's config, its preprocessing, tau and the weights.
+
+A checkpoint alone rebuilds its model. Files are written atomically (temporary file + rename), so a
+killed training never leaves a half-written checkpoint. Inference needs only the generator and
+encoder; `export_for_inference` strips the discriminator and optimiser state (and can store the
+weights in half precision).
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+FORMAT = "inseggan-ckpt-v1"
+
+
+class CheckpointError(Exception):
+    """A missing, unreadable or incompatible checkpoint; the message says which and why."""
+
+
+def save(path, state: dict) -> Path:
+    import torch
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    torch.save({"format": FORMAT, **state}, tmp)
+    os.replace(tmp, path)
+    return path
+
+
+def load(path, map_location="cpu") -> dict:
+    import torch
+
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no such model file")
+    try:
+        state = torch.load(path, map_location=map_location, weights_only=False)
+    except Exception as e:
+        raise CheckpointError(f"{path}: not a readable checkpoint ({type(e).__name__}: {e})") from None
+    if not isinstance(state, dict) or state.get("format") != FORMAT:
+        found = state.get("format") if isinstance(state, dict) else type(state).__name__
+        raise CheckpointError(f"{path}: not an inseggan checkpoint (format {found!r}, "
+                              f"expected {FORMAT!r})")
+    return state
+
+
+def build_models(state: dict, path="checkpoint"):
+    from .model import Encoder, Generator, ModelConfig
+
+    try:
+        cfg = ModelConfig(**state["model_config"])
+        G, E = Generator(cfg), Encoder(cfg)
+        G.load_state_dict({k: v.float() for k, v in state["generator"].items()})
+        E.load_state_dict({k: v.float() for k, v in state["encoder"].items()})
+    except (KeyError, TypeError, ValueError, RuntimeError) as e:
+        raise CheckpointError(f"{path}: incompatible with this version of inseggan_ros "
+                              f"({type(e).__name__}: {str(e).splitlines()[0]})") from None
+    return cfg, G, E
+
+
+def pick_device(device: str = "auto") -> str:
+    import torch
+
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if device not in ("cpu", "cuda") and not device.startswith("cuda:"):
+        raise ValueError(f"device {device!r} invalid; valid: auto, cpu, cuda, cuda:<index>")
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"device {device!r} asked for, but no CUDA device is available")
+    return device
+
+
+def load_for_inference(path, device: str = "auto", tau: float | None = None):
+    from .preprocess import PreprocessConfig
+    from .segment import Segmenter
+
+    state = load(path)
+    cfg, G, E = build_models(state, path)
+    try:
+        prep = PreprocessConfig.from_dict(state["preprocess_config"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise CheckpointError(f"{path}: bad preprocessing config ({e})") from None
+    return Segmenter(G, E, cfg, prep, float(state.get("tau", -0.5) if tau is None else tau),
+                     device=pick_device(device))
+
+
+def export_for_inference(src, dst, half: bool = False) -> Path:
+    """Keep what inference needs: configs, tau, G and E weights (optionally float16)."""
+    state = load(src)
+    keep = {k: v for k, v in state.items()
+            if k not in ("discriminator", "optimizers", "rng", "format", "good_generator")}
+    if half:
+        for key in ("generator", "encoder"):
+            keep[key] = {k: v.half() if v.is_floating_point() else v for k, v in keep[key].items()}
+    keep["precision"] = "float16" if half else "float32"
+    return save(dst, keep)

@@ -1,0 +1,93 @@
+"""Segmentation API and evaluation CLI on a real (tiny) trained model."""
+import json
+
+import numpy as np
+import pytest
+import torch
+from conftest import BAGS, run_cli
+
+from inseggan_ros import bags, checkpoint
+from inseggan_ros.checkpoint import CheckpointError
+from inseggan_ros.segment import calibrate_tau, instance_scores, labels_from_renders
+
+
+def test_zbuffer_labels_and_scores_by_hand():
+    r = torch.full((1, 2, 4, 4), -1.0)
+    r[0, 0, :2, :] = 0.5  # instance 1 covers the top half
+    r[0, 1, 1:3, :] = 0.8  # instance 2 covers rows 1-2, nearer the camera
+    labels = labels_from_renders(r, tau=0.0)[0]
+    expected = torch.tensor([[1] * 4, [2] * 4, [2] * 4, [0] * 4], dtype=torch.uint8)
+    assert torch.equal(labels, expected)
+    fg = torch.ones(1, 4, 4, dtype=torch.bool)
+    fg[0, 0, 0] = False
+    assert labels_from_renders(r, 0.0, fg)[0, 0, 0] == 0  # only input foreground is labelled
+    scores = instance_scores(r, labels[None], 0.0)[0]
+    assert scores.tolist() == [0.5, 1.0]  # half of instance 1 is hidden by instance 2
+
+
+def test_tau_calibration_with_and_without_labels():
+    r = torch.full((2, 1, 8, 8), -1.0)
+    r[:, 0, 2:6, 2:6] = 0.2
+    fg = torch.zeros(2, 8, 8, dtype=torch.bool)
+    fg[:, 2:6, 2:6] = True
+    tau, scores = calibrate_tau(r, fg)  # the rendered foreground must match the input's
+    assert -1 < tau <= 0.2 and scores[tau] == pytest.approx(1.0)
+    gt = fg.numpy().astype(np.uint8)
+    tau, scores = calibrate_tau(r, fg, gt)
+    assert scores[tau] == pytest.approx(1.0)
+
+
+@pytest.fixture(scope="module")
+def tiny_model(tmp_path_factory):
+    root = tmp_path_factory.mktemp("seg")
+    run_cli("simulate", "--quiet", "--count", "40", "--split", "0.5,0.25,0.25", "--out",
+            root / "data", check=True)
+    run_cli("train", "--data", root / "data", "--out", root / "run", "--iterations", "10",
+            "--eval-every", "10", "--config", "cpu", "--nf", "8", "--batch-size", "4",
+            "--quiet", "--device", "cpu", check=True, timeout=600)
+    return root
+
+
+def test_segmenter_on_a_full_resolution_frame(tiny_model):
+    seg = checkpoint.load_for_inference(tiny_model / "run" / "best.pt", device="cpu")
+    frame = bags.read_all(BAGS / "cylinder_sim", limit=1)[0]
+    depth = frame.metres()
+    out = seg(depth)
+    n = seg.model_cfg.n_instances
+    assert out.labels.shape == depth.shape and out.labels.dtype == np.uint8
+    assert out.labels.max() <= n
+    assert out.masks.shape == (n, *depth.shape)
+    np.testing.assert_array_equal(out.masks.any(0), out.labels > 0)
+    assert out.reconstruction.shape == depth.shape
+    assert out.scores.shape == (n,) and ((0 <= out.scores) & (out.scores <= 1)).all()
+    # labels only where the input has objects (above the floor by min_height)
+    heights = depth.max() - depth
+    assert not (out.labels[heights < 0.001] > 0).any()
+    again = seg(depth)
+    np.testing.assert_array_equal(again.labels, out.labels)  # deterministic
+
+
+def test_eval_cli_writes_table_json_and_png(tiny_model, tmp):
+    p = run_cli("eval", "--model", tiny_model / "run" / "best.pt", "--data",
+                tiny_model / "data", "--frames", "10", "--out", tmp / "ev", "--quiet",
+                check=True, timeout=600)
+    assert "| kmeans |" in p.stdout and "| inseggan |" in p.stdout
+    r = json.loads((tmp / "ev" / "results.json").read_text())
+    assert r["frames"] == 10
+    assert set(r["methods"]) == {"inseggan", "kmeans", "spectral", "grabcut_kmeans", "felzenszwalb"}
+    for m in r["methods"].values():
+        assert 0 <= m["miou_all"] <= 1 and m["ms_per_frame"] > 0
+    assert (tmp / "ev" / "qualitative.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_bad_model_files_give_one_clear_error(tmp):
+    (tmp / "junk.pt").write_bytes(b"not a checkpoint")
+    for path, message in [(tmp / "none.pt", "no such model file"),
+                          (tmp / "junk.pt", "not a readable checkpoint")]:
+        with pytest.raises(CheckpointError, match=message):
+            checkpoint.load_for_inference(path)
+        p = run_cli("eval", "--model", path, "--data", tmp, "--out", tmp / "x")
+        assert p.returncode == 2 and message in p.stderr and "Traceback" not in p.stderr
+    torch.save({"format": "something-else"}, tmp / "other.pt")
+    with pytest.raises(CheckpointError, match="not an inseggan checkpoint"):
+        checkpoint.load_for_inference(tmp / "other.pt")
