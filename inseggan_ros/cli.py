@@ -136,7 +136,8 @@ def cmd_train(args) -> int:
                      lambda_real=args.lambda_real, matching=args.matching, seed=args.seed,
                      max_iterations=args.iterations, max_minutes=args.minutes,
                      eval_every=args.eval_every, checkpoint_every=args.eval_every,
-                     rotate=args.rotate or None)
+                     rotate=args.rotate or None,
+                     real_trains_generator=args.real_trains_generator or None)
     train_data, val_data, prep, info = _load_training_data(args)
     if val_data.get("labels") is None:
         print("no labels in the validation frames: validation uses the reconstruction error")
@@ -308,6 +309,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lambda-real", type=float)
     p.add_argument("--matching", choices=["hungarian", "ot", "greedy"])
     p.add_argument("--rotate", action="store_true", help="augment with +-20 degree rotations")
+    p.add_argument("--real-trains-generator", action="store_true",
+                   help="the real-frame reconstruction loss also trains the generator")
     p.add_argument("--eval-every", type=int)
     p.add_argument("--train-frames", type=int, help="use at most this many training frames")
     p.add_argument("--val-frames", type=int, default=200)

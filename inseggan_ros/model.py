@@ -38,6 +38,7 @@ class ModelConfig:
     translation_std: float = 0.35  # initial spread of decoded translations, affine-grid units
     spectral_norm: bool = False  # spectral normalisation in the discriminator
     zbuffer_temperature: float = 0.05  # training composite: softmax(d_i / T)-weighted depths
+    render_bias: float = 0.0  # initial bias of the renderer's last layer (-2.5: floor prior)
 
     def __post_init__(self):
         if self.image_size != 64:
@@ -115,6 +116,9 @@ class Generator(nn.Module):
             nn.ConvTranspose2d(nf, 1, 4, 2, 1), nn.Tanh())
         init_weights(self)
         self._spread_poses()
+        # floor prior: every single-instance render starts out as bin floor (tanh(-2.5) = -0.99),
+        # so the composite's background is right from the start and only objects must be learned
+        nn.init.constant_(self.renderer[-2].bias, cfg.render_bias)
 
     @torch.no_grad()
     def _spread_poses(self) -> None:

@@ -44,7 +44,8 @@ class TrainConfig:
     betas: tuple[float, float] = (0.5, 0.999)
     lambda_i: float = 1.0
     lambda_p: float = 1.0
-    lambda_real: float = 0.0  # real-frame reconstruction through the frozen generator
+    lambda_real: float = 0.0  # real-frame reconstruction, G(E(x_real)) vs x_real
+    real_trains_generator: bool = False  # that loss also trains G (an autoencoder on real data)
     r1_gamma: float = 0.0  # R1 penalty weight (0 = off)
     matching: str = "hungarian"
     augment: bool = True  # random flips
@@ -85,7 +86,8 @@ CONFIGS: dict[str, TrainConfig] = {
     "paper_cpu": TrainConfig(model=ModelConfig(nf=32, composite="average"), batch_size=64),
     # This project's CPU default: instances rendered alone and z-buffered in training as at test
     # time, and the encoder also fitted to real frames through the frozen generator.
-    "cpu": TrainConfig(model=ModelConfig(nf=32, latent_dim=16, composite="zbuffer"),
+    "cpu": TrainConfig(model=ModelConfig(nf=32, latent_dim=16, composite="zbuffer",
+                                         render_bias=-2.5),
                        batch_size=32, lambda_real=1.0),
 }
 
@@ -222,8 +224,9 @@ def train_step(run: Run, real: torch.Tensor, amp: bool = False) -> dict:
     # 3. encoder, generator frozen (gradients flow through G to E, G's weights do not change)
     x_gen, target_f = fake.detach(), mean_f.detach()
     g = _unwrap(G)
+    joint = cfg.lambda_real > 0 and not cfg.real_trains_generator
     with _frozen(g), autocast:
-        enc_in = torch.cat([x_gen, real]) if cfg.lambda_real > 0 else x_gen
+        enc_in = torch.cat([x_gen, real]) if joint else x_gen
         z_hat_all, h_all = E(enc_in, return_features=True)
         z_hat, h = z_hat_all[:B], h_all[:B]
         l_a = losses.alignment_loss(z.float(), z_hat.float(), cfg.matching)
@@ -231,12 +234,23 @@ def train_step(run: Run, real: torch.Tensor, amp: bool = False) -> dict:
         l_p = F.l1_loss(g(z_hat).float(), x_gen.float())
         loss_e = l_a + cfg.lambda_i * l_i + cfg.lambda_p * l_p
         l_r = torch.zeros(())
-        if cfg.lambda_real > 0:
+        if joint:
             l_r = F.l1_loss(g(z_hat_all[B:]).float(), real.float())
             loss_e = loss_e + cfg.lambda_real * l_r
     run.opt_e.zero_grad(set_to_none=True)
     loss_e.backward()
     run.opt_e.step()
+
+    # 4. (optional) real frames through E and G, both trained: analysis by synthesis on the
+    # data itself; a rigidly posed shared template per code keeps the instances apart
+    if cfg.lambda_real > 0 and cfg.real_trains_generator:
+        with autocast:
+            l_r = F.l1_loss(G(E(real)).float(), real.float())  # through DDP when distributed
+        run.opt_e.zero_grad(set_to_none=True)
+        run.opt_g.zero_grad(set_to_none=True)
+        (cfg.lambda_real * l_r).backward()
+        run.opt_e.step()
+        run.opt_g.step()
     return {"loss_d": loss_d.item(), "loss_g": loss_g.item(), "l_a": l_a.item(),
             "l_i": l_i.item(), "l_p": l_p.item(), "l_real": l_r.item()}
 
@@ -245,6 +259,12 @@ def guard_divergence(run: Run, stats: dict) -> bool:
     """Reset G (and D) to the last good weights when the adversarial losses blow up."""
     bad = not all(math.isfinite(v) for v in stats.values()) or \
         max(stats["loss_g"], stats["loss_d"]) > run.cfg.divergence_threshold
+    import torch.distributed as dist
+
+    if dist.is_available() and dist.is_initialized():  # all ranks reset together, or none
+        flag = torch.tensor(float(bad), device=next(_unwrap(run.G).parameters()).device)
+        dist.all_reduce(flag, op=dist.ReduceOp.MAX)
+        bad = bool(flag.item())
     if bad and run.good_g is not None:
         _unwrap(run.G).load_state_dict(run.good_g["g"])
         _unwrap(run.D).load_state_dict(run.good_g["d"])
@@ -369,7 +389,7 @@ def train(cfg: TrainConfig, train_data: dict, val_data: dict | None, out: Path,
         restore(run, state)
         if is_main:
             print(f"resumed from {last} at iteration {run.iteration}")
-    elif last.is_file() and is_main:
+    elif last.is_file():
         raise FileExistsError(f"{out} holds a run already (last.pt): pass --resume to continue "
                               "it, or choose another --out")
     if distributed:
@@ -416,6 +436,25 @@ def train(cfg: TrainConfig, train_data: dict, val_data: dict | None, out: Path,
         if best:
             checkpoint.save(out / "best.pt", state)
 
+    def validate() -> bool:
+        """Validation record (and samples, curves); returns whether it is the best so far."""
+        v = evaluate(run, val_data, device, cfg.eval_frames)
+        rec = {"kind": "val", "iteration": run.iteration, "seconds": round(elapsed(), 1), **v}
+        run.history.append(rec)
+        with open(out / "log.jsonl", "a") as f:
+            f.write(json.dumps(rec) + "\n")
+        score = v.get("miou", -v["recon_l1"])
+        improved = score > run.best
+        if improved:
+            run.best, run.tau = score, v["tau"]
+        save_samples(run, sample_x, out / "samples" / f"iter_{run.iteration:06d}.png", v["tau"])
+        plot_curves(run.history, out / "curves.png")
+        tqdm.write(f"iter {run.iteration}: " + ", ".join(
+            f"{k} {val:.4f}" for k, val in v.items()) + (" (best)" if improved else ""))
+        return improved
+
+    if is_main and val_data is not None and run.iteration == 0:
+        validate()  # the starting point, so that curves show what training changed
     try:
         while run.iteration < cfg.max_iterations and elapsed() < budget:
             try:
@@ -446,20 +485,7 @@ def train(cfg: TrainConfig, train_data: dict, val_data: dict | None, out: Path,
                                     a=f"{stats['l_a']:.2f}", p=f"{stats['l_p']:.3f}",
                                     r=f"{stats['l_real']:.3f}", ips=f"{ips:.0f}")
             if run.iteration % cfg.eval_every == 0 or run.iteration == cfg.max_iterations:
-                improved = False
-                if is_main and val_data is not None:
-                    v = evaluate(run, val_data, device, cfg.eval_frames)
-                    rec = {"kind": "val", "iteration": run.iteration, "seconds": round(elapsed(), 1), **v}
-                    run.history.append(rec)
-                    with open(out / "log.jsonl", "a") as f:
-                        f.write(json.dumps(rec) + "\n")
-                    score = v.get("miou", -v["recon_l1"])
-                    if score > run.best:
-                        run.best, run.tau, improved = score, v["tau"], True
-                    save_samples(run, sample_x, out / "samples" / f"iter_{run.iteration:06d}.png", v["tau"])
-                    plot_curves(run.history, out / "curves.png")
-                    tqdm.write(f"iter {run.iteration}: " + ", ".join(
-                        f"{k} {val:.4f}" for k, val in v.items()) + (" (best)" if improved else ""))
+                improved = is_main and val_data is not None and validate()
                 checkpoint_now(best=improved)
             elif run.iteration % cfg.checkpoint_every == 0:
                 checkpoint_now()

