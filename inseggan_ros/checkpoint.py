@@ -46,11 +46,11 @@ def load(path, map_location="cpu") -> dict:
 
 
 def build_models(state: dict, path="checkpoint"):
-    from .model import Encoder, Generator, ModelConfig
+    from .model import Encoder, ModelConfig, make_generator
 
     try:
         cfg = ModelConfig(**state["model_config"])
-        G, E = Generator(cfg), Encoder(cfg)
+        G, E = make_generator(cfg), Encoder(cfg)
         G.load_state_dict({k: v.float() for k, v in state["generator"].items()})
         E.load_state_dict({k: v.float() for k, v in state["encoder"].items()})
     except (KeyError, TypeError, ValueError, RuntimeError) as e:

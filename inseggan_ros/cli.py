@@ -137,7 +137,9 @@ def cmd_train(args) -> int:
                      max_iterations=args.iterations, max_minutes=args.minutes,
                      eval_every=args.eval_every, checkpoint_every=args.eval_every,
                      rotate=args.rotate or None,
-                     real_trains_generator=args.real_trains_generator or None)
+                     real_trains_generator=args.real_trains_generator or None,
+                     r1_gamma=args.r1_gamma, spectral_norm=args.spectral_norm or None,
+                     renderer=args.renderer)
     train_data, val_data, prep, info = _load_training_data(args)
     if val_data.get("labels") is None:
         print("no labels in the validation frames: validation uses the reconstruction error")
@@ -298,7 +300,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--roi", help="bin region x0,y0,x1,y1 in pixels for bags (default: found)")
     p.add_argument("--min-height", type=float, default=0.006, help="metres above the floor")
     p.add_argument("--max-height", type=float, default=0.05, help="metres mapped to +1")
-    p.add_argument("--config", default="cpu", help="named config: cpu, paper_cpu, paper")
+    p.add_argument("--config", default="cpu", help="named config: cpu, cpu_fast, paper_cpu, paper")
     p.add_argument("--out", type=Path, required=True, help="run directory")
     p.add_argument("--minutes", type=float, help="wall-clock budget")
     p.add_argument("--iterations", type=int, help="iteration budget")
@@ -309,6 +311,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lambda-real", type=float)
     p.add_argument("--matching", choices=["hungarian", "ot", "greedy"])
     p.add_argument("--rotate", action="store_true", help="augment with +-20 degree rotations")
+    p.add_argument("--r1-gamma", type=float, help="R1 penalty weight on real frames")
+    p.add_argument("--spectral-norm", action="store_true", help="in the discriminator")
+    p.add_argument("--renderer", choices=["learned", "projection"])
     p.add_argument("--real-trains-generator", action="store_true",
                    help="the real-frame reconstruction loss also trains the generator")
     p.add_argument("--eval-every", type=int)

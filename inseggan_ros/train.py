@@ -86,6 +86,10 @@ CONFIGS: dict[str, TrainConfig] = {
     "paper_cpu": TrainConfig(model=ModelConfig(nf=32, composite="average"), batch_size=64),
     # This project's CPU default: instances rendered alone and z-buffered in training as at test
     # time, and the encoder also fitted to real frames through the frozen generator.
+    # A fast generator for a CPU: explicit occupancy template + fixed projection renderer.
+    "cpu_fast": TrainConfig(model=ModelConfig(nf=32, latent_dim=16, composite="zbuffer",
+                                              renderer="projection"),
+                            batch_size=32, lambda_real=1.0),
     "cpu": TrainConfig(model=ModelConfig(nf=32, latent_dim=16, composite="zbuffer",
                                          render_bias=-2.5),
                        batch_size=32, lambda_real=1.0),
@@ -222,7 +226,8 @@ def train_step(run: Run, real: torch.Tensor, amp: bool = False) -> dict:
     run.opt_g.step()
 
     # 3. encoder, generator frozen (gradients flow through G to E, G's weights do not change)
-    x_gen, target_f = fake.detach(), mean_f.detach()
+    x_gen = fake.detach()
+    target_f = mean_f.detach() if mean_f is not None else None
     g = _unwrap(G)
     joint = cfg.lambda_real > 0 and not cfg.real_trains_generator
     with _frozen(g), autocast:
@@ -230,7 +235,8 @@ def train_step(run: Run, real: torch.Tensor, amp: bool = False) -> dict:
         z_hat_all, h_all = E(enc_in, return_features=True)
         z_hat, h = z_hat_all[:B], h_all[:B]
         l_a = losses.alignment_loss(z.float(), z_hat.float(), cfg.matching)
-        l_i = F.mse_loss(h.float(), target_f.float())
+        l_i = (F.mse_loss(h.float(), target_f.float()) if target_f is not None
+               else torch.zeros((), device=real.device))  # projection renderer: no features
         l_p = F.l1_loss(g(z_hat).float(), x_gen.float())
         loss_e = l_a + cfg.lambda_i * l_i + cfg.lambda_p * l_p
         l_r = torch.zeros(())

@@ -122,3 +122,25 @@ def test_adversarial_losses():
     logits = (x ** 2).sum((1, 2, 3))[:, None]
     expected = float((4 * x.detach() ** 2).sum((1, 2, 3)).mean())
     assert losses.r1_penalty(logits, x).item() == pytest.approx(expected, rel=1e-5)
+
+
+def test_projection_generator_renders_rigid_copies_of_one_template():
+    from scipy import ndimage
+
+    from inseggan_ros.model import ProjectionGenerator, make_generator
+
+    cfg = ModelConfig(renderer="projection", composite="zbuffer", template_size=16, **SMALL)
+    G = make_generator(cfg)
+    assert isinstance(G, ProjectionGenerator)
+    z = torch.randn(3, 3, 16, requires_grad=True)
+    x, feats = G(z, return_features=True)
+    assert x.shape == (3, 1, 64, 64) and feats is None
+    singles = G.render_instances(z)
+    for img in singles.detach().flatten(0, 1):
+        drawn = img > -0.95
+        if drawn.any():  # the initial template is one ball: one blob per instance
+            assert ndimage.label(drawn.numpy())[1] == 1
+    x.mean().backward()
+    assert G.occupancy.grad.abs().sum() > 0 and z.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match="use composite='zbuffer'"):
+        ModelConfig(renderer="projection", composite="average")
