@@ -214,8 +214,15 @@ class ProjectionGenerator(Generator):
         r = torch.linspace(-1, 1, S)
         zz, yy, xx = torch.meshgrid(r, r, r, indexing="ij")
         dist = (xx ** 2 + yy ** 2 + zz ** 2).sqrt()
-        self.occupancy = nn.Parameter(((0.3 - dist) * 20).clamp(-6, 6)[None, None])
+        self.occupancy = nn.Parameter(((0.3 - dist) * 10).clamp(-3, 3)[None, None])
         self.register_buffer("levels", (torch.arange(S // 2) / (S // 2 - 1)).view(1, S // 2, 1, 1))
+
+    def template_spread(self) -> torch.Tensor:
+        """Mean of occupancy x squared distance from the template centre (a compactness prior)."""
+        S = self.cfg.template_size
+        r = torch.linspace(-1, 1, S, device=self.occupancy.device)
+        r2 = r.view(S, 1, 1) ** 2 + r.view(1, S, 1) ** 2 + r.view(1, 1, S) ** 2
+        return (torch.sigmoid(self.occupancy)[0, 0] * r2).mean()
 
     def render_instances(self, z: torch.Tensor) -> torch.Tensor:
         B, n, d = z.shape

@@ -41,12 +41,14 @@ class TrainConfig:
     lr_g: float = 2e-4
     lr_d: float = 2e-4
     lr_e: float = 1e-3
+    lr_template: float = 0.0  # learning rate of the explicit template (0 = lr_g)
     betas: tuple[float, float] = (0.5, 0.999)
     lambda_i: float = 1.0
     lambda_p: float = 1.0
     lambda_real: float = 0.0  # real-frame reconstruction, G(E(x_real)) vs x_real
     real_trains_generator: bool = False  # that loss also trains G (an autoencoder on real data)
     r1_gamma: float = 0.0  # R1 penalty weight (0 = off)
+    compactness: float = 0.0  # explicit template: weight of mean(occupancy * radius^2)
     matching: str = "hungarian"
     augment: bool = True  # random flips
     rotate: bool = False  # and small rotations (+-20 degrees)
@@ -64,7 +66,7 @@ class TrainConfig:
             raise ValueError(f"batch_size must be >= 2, got {self.batch_size}")
         if self.matching not in losses.MATCHINGS:
             raise ValueError(f"matching {self.matching!r} invalid; valid: {', '.join(losses.MATCHINGS)}")
-        for name in ("lr_g", "lr_d", "lr_e"):
+        for name in ("lr_g", "lr_d", "lr_e"):  # lr_template may be 0 (= lr_g)
             if not 0 < getattr(self, name) < 1:
                 raise ValueError(f"{name} must be in (0, 1), got {getattr(self, name)}")
 
@@ -88,8 +90,9 @@ CONFIGS: dict[str, TrainConfig] = {
     # time, and the encoder also fitted to real frames through the frozen generator.
     # A fast generator for a CPU: explicit occupancy template + fixed projection renderer.
     "cpu_fast": TrainConfig(model=ModelConfig(nf=32, latent_dim=16, composite="zbuffer",
-                                              renderer="projection"),
-                            batch_size=32, lambda_real=1.0),
+                                              renderer="projection", spectral_norm=True),
+                            batch_size=32, lambda_real=1.0, real_trains_generator=True,
+                            r1_gamma=10.0, lr_template=0.02, compactness=1.0),
     "cpu": TrainConfig(model=ModelConfig(nf=32, latent_dim=16, composite="zbuffer",
                                          render_bias=-2.5),
                        batch_size=32, lambda_real=1.0),
@@ -176,8 +179,13 @@ def weights_checksum(run: Run) -> str:
 def make_run(cfg: TrainConfig, device: str) -> Run:
     G, D, E = build(cfg.model)
     G, D, E = G.to(device), D.to(device), E.to(device)
+    template = [p for name, p in G.named_parameters() if name == "occupancy"]
+    rest = [p for name, p in G.named_parameters() if name != "occupancy"]
+    groups = [{"params": rest}]
+    if template:  # an explicit occupancy grid needs far larger steps than network weights
+        groups.append({"params": template, "lr": cfg.lr_template or cfg.lr_g})
     return Run(cfg, G, D, E,
-               torch.optim.Adam(G.parameters(), cfg.lr_g, betas=cfg.betas),
+               torch.optim.Adam(groups, cfg.lr_g, betas=cfg.betas),
                torch.optim.Adam(D.parameters(), cfg.lr_d, betas=cfg.betas),
                torch.optim.Adam(E.parameters(), cfg.lr_e, betas=cfg.betas))
 
@@ -218,9 +226,13 @@ def train_step(run: Run, real: torch.Tensor, amp: bool = False) -> dict:
     run.opt_d.step()
     real = real.detach()
 
-    # 2. generator: non-saturating
+    # 2. generator: non-saturating (+ a compactness prior that keeps an explicit template one
+    # object around its centre, instead of several objects that would pose together)
     with autocast:
         loss_g = losses.g_loss(D(fake).float())
+    g0 = _unwrap(G)
+    if cfg.compactness > 0 and hasattr(g0, "occupancy"):
+        loss_g = loss_g + cfg.compactness * g0.template_spread()
     run.opt_g.zero_grad(set_to_none=True)
     loss_g.backward()
     run.opt_g.step()
