@@ -72,13 +72,12 @@ def qualitative_png(path, data: dict, results: dict, recon: np.ndarray | None = 
     """Rows of: input | reconstruction | InSeGAN | each baseline | ground truth."""
     from . import viz
 
-    gray = lambda a: np.repeat(((np.clip(a, -1, 1) + 1) * 127.5).astype(np.uint8)[..., None], 3, -1)
     if frames is None:
         frames = list(range(min(count, len(data["x"]))))
     rows, titles = [], ["input"] + (["reconstruction"] if recon is not None else []) + \
         list(results) + ["ground truth"]
     for i in frames:
-        row = [gray(data["x"][i, 0])] + ([gray(recon[i, 0])] if recon is not None else [])
+        row = [viz.gray(data["x"][i, 0])] + ([viz.gray(recon[i, 0])] if recon is not None else [])
         row += [viz.colorize_labels(r["labels"][i]) for r in results.values()]
         row.append(viz.colorize_labels(data["labels"][i]))
         rows.append(row)

@@ -86,6 +86,15 @@ def rodrigues(axis_angle: torch.Tensor) -> torch.Tensor:
     return eye + s * K + (1 - c) * (K @ K)
 
 
+def pose_decoder(d: int) -> nn.Sequential:
+    """MLP code -> 6 pose numbers: d -> d/2 -> d/4 -> 6 as the paper (d = 128), LeakyReLU, no
+    bias; at least 64 -> 32 hidden units for small codes."""
+    h1, h2 = max(d // 2, 64), max(d // 4, 32)
+    return nn.Sequential(nn.Linear(d, h1, bias=False), nn.LeakyReLU(0.2),
+                         nn.Linear(h1, h2, bias=False), nn.LeakyReLU(0.2),
+                         nn.Linear(h2, 6, bias=False))
+
+
 class ResBlock3d(nn.Module):
     def __init__(self, cin: int, cout: int):
         super().__init__()
@@ -103,11 +112,7 @@ class Generator(nn.Module):
         super().__init__()
         self.cfg = cfg
         d, nf = cfg.latent_dim, cfg.nf
-        # d -> d/2 -> d/4 -> 6 as the paper (d = 128); at least 64 -> 32 for small codes
-        h1, h2 = max(d // 2, 64), max(d // 4, 32)
-        self.pose = nn.Sequential(nn.Linear(d, h1, bias=False), nn.LeakyReLU(0.2),
-                                  nn.Linear(h1, h2, bias=False), nn.LeakyReLU(0.2),
-                                  nn.Linear(h2, 6, bias=False))
+        self.pose = pose_decoder(d)
         self.template = nn.Parameter(torch.randn(1, nf, 4, 4, 4))
         self.template_net = nn.Sequential(
             ResBlock3d(nf, nf // 2), nn.Upsample(scale_factor=2, mode="nearest"),
@@ -179,16 +184,18 @@ class Generator(nn.Module):
         mean_f = f.mean(1)
         if self.cfg.composite == "average":
             x = self.render(mean_f)
-        else:  # z-buffer: per pixel the nearest surface (largest height) wins
-            singles = self._render_each(f)
-            if self.training and self.cfg.zbuffer_temperature > 0:
-                # soft z-buffer: every instance gets gradient, weighted by how near it is;
-                # where all renders agree (background) the composite equals them exactly
-                w = torch.softmax(singles / self.cfg.zbuffer_temperature, dim=1)
-                x = (w * singles).sum(dim=1, keepdim=True)
-            else:
-                x = singles.amax(dim=1, keepdim=True)
+        else:
+            x = self.zbuffer(self._render_each(f))
         return (x, mean_f) if return_features else x
+
+    def zbuffer(self, singles: torch.Tensor) -> torch.Tensor:
+        """(B, n, H, W) single-instance renders -> (B, 1, H, W): per pixel the nearest surface
+        (largest height) wins. In training a soft max, so that every instance gets gradient,
+        weighted by how near it is; where all renders agree (background) it equals them."""
+        if self.training and self.cfg.zbuffer_temperature > 0:
+            w = torch.softmax(singles / self.cfg.zbuffer_temperature, dim=1)
+            return (w * singles).sum(dim=1, keepdim=True)
+        return singles.amax(dim=1, keepdim=True)
 
 
 class ProjectionGenerator(Generator):
@@ -205,10 +212,7 @@ class ProjectionGenerator(Generator):
         nn.Module.__init__(self)
         self.cfg = cfg
         d, S = cfg.latent_dim, cfg.template_size
-        h1, h2 = max(d // 2, 64), max(d // 4, 32)
-        self.pose = nn.Sequential(nn.Linear(d, h1, bias=False), nn.LeakyReLU(0.2),
-                                  nn.Linear(h1, h2, bias=False), nn.LeakyReLU(0.2),
-                                  nn.Linear(h2, 6, bias=False))
+        self.pose = pose_decoder(d)
         init_weights(self)
         self._spread_poses()
         r = torch.linspace(-1, 1, S)
@@ -238,12 +242,7 @@ class ProjectionGenerator(Generator):
         return x.reshape(B, n, size, size)
 
     def forward(self, z: torch.Tensor, return_features: bool = False):
-        singles = self.render_instances(z)
-        if self.training and self.cfg.zbuffer_temperature > 0:
-            w = torch.softmax(singles / self.cfg.zbuffer_temperature, dim=1)
-            x = (w * singles).sum(dim=1, keepdim=True)
-        else:
-            x = singles.amax(dim=1, keepdim=True)
+        x = self.zbuffer(self.render_instances(z))
         return (x, None) if return_features else x
 
 

@@ -331,12 +331,11 @@ def save_samples(run: Run, x: torch.Tensor, path: Path, tau: float) -> None:
     out = infer(G, E, x)
     fg = x[:, 0] > -1 + 1e-4
     labels = labels_from_renders(out["renders"], tau, fg).cpu().numpy()
-    gray = lambda a: np.repeat(((np.clip(a, -1, 1) + 1) * 127.5).astype(np.uint8)[..., None], 3, -1)
     rows = []
     for i in range(len(x)):
-        row = [gray(x[i, 0].cpu().numpy()), gray(out["reconstruction"][i, 0].cpu().numpy()),
+        row = [viz.gray(x[i, 0].cpu().numpy()), viz.gray(out["reconstruction"][i, 0].cpu().numpy()),
                viz.colorize_labels(labels[i])]
-        row += [gray(r) for r in out["renders"][i].cpu().numpy()]
+        row += [viz.gray(r) for r in out["renders"][i].cpu().numpy()]
         rows.append(row)
     n = out["renders"].shape[1]
     viz.save_sheet(path, rows, col_titles=["input", "reconstruction", "labels"] +

@@ -18,6 +18,12 @@ def colorize_labels(labels: np.ndarray) -> np.ndarray:
     return PALETTE[np.asarray(labels) % len(PALETTE)]
 
 
+def gray(x: np.ndarray) -> np.ndarray:
+    """(H, W) model image in [-1, 1] (floor -1) -> (H, W, 3) uint8 gray."""
+    g = ((np.clip(x, -1, 1) + 1) * 127.5).astype(np.uint8)
+    return np.repeat(g[..., None], 3, -1)
+
+
 def colorize_depth(depth_m: np.ndarray) -> np.ndarray:
     """(H, W) metres -> (H, W, 3) uint8 RGB; near is bright; missing (0) is black."""
     import cv2
