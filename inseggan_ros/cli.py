@@ -176,12 +176,7 @@ def cmd_eval(args) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     evaluate.write_json(out / "results.json", summary)
-    recon = seg.segment_batch(d["x"][:8], d["fg"][:8])["reconstruction"].cpu().numpy()
-    hard = np.nonzero(results["kmeans"]["scores"] < evaluate.HARD_THRESHOLD)[0] \
-        if "kmeans" in results else []
-    frames = (list(hard[:3]) + [i for i in range(8) if i not in hard[:3]])[:6]
-    frames = [i for i in frames if i < 8]
-    evaluate.qualitative_png(out / "qualitative.png", d, results, recon, frames)
+    evaluate.qualitative_png(out / "qualitative.png", d, results)
     print(f"{source}: {summary['frames']} frames, {summary['hard_frames']} hard "
           f"({summary['hard_rule']}); model {args.model}, tau {seg.tau:.2f}")
     print(evaluate.format_table(summary))

@@ -29,9 +29,11 @@ def run_methods(data: dict, n: int, segmenter=None, methods=None, progress: bool
     results = {}
     if segmenter is not None:
         t0 = time.perf_counter()
-        labels = np.concatenate([segmenter.segment_batch(x[i:i + 50], fg[i:i + 50])["labels"]
-                                 .cpu().numpy() for i in range(0, len(x), 50)])
-        results["inseggan"] = {"labels": labels, "seconds": time.perf_counter() - t0}
+        outs = [segmenter.segment_batch(x[i:i + 50], fg[i:i + 50]) for i in range(0, len(x), 50)]
+        results["inseggan"] = {
+            "labels": np.concatenate([o["labels"].cpu().numpy() for o in outs]),
+            "reconstruction": np.concatenate([o["reconstruction"].cpu().numpy() for o in outs]),
+            "seconds": time.perf_counter() - t0}
     for name in methods:
         fn = BASELINES[name]
         t0 = time.perf_counter()
@@ -67,13 +69,20 @@ def format_table(summary: dict) -> str:
     return "\n".join(lines)
 
 
-def qualitative_png(path, data: dict, results: dict, recon: np.ndarray | None = None,
-                    frames=None, count: int = 6) -> Path:
+def pick_frames(results: dict, count: int = 6) -> list[int]:
+    """Frames to show: up to half from the hard subset (K-Means < 0.6), the rest in order."""
+    n = len(next(iter(results.values()))["labels"])
+    hard = list(np.nonzero(results["kmeans"]["scores"] < HARD_THRESHOLD)[0][:count // 2]) \
+        if "kmeans" in results else []
+    return (hard + [i for i in range(n) if i not in hard])[:count]
+
+
+def qualitative_png(path, data: dict, results: dict, frames=None, count: int = 6) -> Path:
     """Rows of: input | reconstruction | InSeGAN | each baseline | ground truth."""
     from . import viz
 
-    if frames is None:
-        frames = list(range(min(count, len(data["x"]))))
+    frames = pick_frames(results, count) if frames is None else frames
+    recon = results.get("inseggan", {}).get("reconstruction")
     rows, titles = [], ["input"] + (["reconstruction"] if recon is not None else []) + \
         list(results) + ["ground truth"]
     for i in frames:
