@@ -139,7 +139,8 @@ def cmd_train(args) -> int:
                      rotate=args.rotate or None,
                      real_trains_generator=args.real_trains_generator or None,
                      r1_gamma=args.r1_gamma, spectral_norm=args.spectral_norm or None,
-                     renderer=args.renderer)
+                     renderer=args.renderer, lr_template=args.lr_template,
+                     compactness=args.compactness)
     train_data, val_data, prep, info = _load_training_data(args)
     if val_data.get("labels") is None:
         print("no labels in the validation frames: validation uses the reconstruction error")
@@ -309,6 +310,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--r1-gamma", type=float, help="R1 penalty weight on real frames")
     p.add_argument("--spectral-norm", action="store_true", help="in the discriminator")
     p.add_argument("--renderer", choices=["learned", "projection"])
+    p.add_argument("--lr-template", type=float, help="learning rate of an explicit template")
+    p.add_argument("--compactness", type=float, help="weight of the template compactness prior")
     p.add_argument("--real-trains-generator", action="store_true",
                    help="the real-frame reconstruction loss also trains the generator")
     p.add_argument("--eval-every", type=int)

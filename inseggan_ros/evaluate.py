@@ -24,6 +24,9 @@ def run_methods(data: dict, n: int, segmenter=None, methods=None, progress: bool
     from .metrics import miou_batch
 
     methods = list(BASELINES) if methods is None else methods
+    unknown = [m for m in methods if m not in BASELINES]
+    if unknown:
+        raise ValueError(f"unknown method(s) {', '.join(unknown)}; valid: {', '.join(BASELINES)}")
     x, fg, gt = data["x"], data["fg"], data["labels"]
     heights = (x[:, 0] + 1) / 2
     results = {}
