@@ -89,7 +89,7 @@ def export_for_inference(src, dst, half: bool = False) -> Path:
     """Keep what inference needs: configs, tau, G and E weights (optionally float16)."""
     state = load(src)
     keep = {k: v for k, v in state.items()
-            if k not in ("discriminator", "optimizers", "rng", "format", "good_generator")}
+            if k not in ("discriminator", "optimizers", "rng", "format")}
     if half:
         for key in ("generator", "encoder"):
             keep[key] = {k: v.half() if v.is_floating_point() else v for k, v in keep[key].items()}

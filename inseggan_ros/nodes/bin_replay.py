@@ -73,7 +73,7 @@ class BinReplay(Node):
     def __init__(self, **kwargs):
         super().__init__("bin_replay", **kwargs)
         self._declare()
-        self.p = {name: self.get_parameter(name).value for name in self._descriptors}
+        self.p = {name: self.get_parameter(name).value for name in self._names}
         self._validate(self.p)
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
@@ -139,13 +139,12 @@ class BinReplay(Node):
             "max_frames": (0, d("stop after this many frames (0 = never)",
                                 int_range=(0, 2 ** 31 - 1))),
         }
-        self._descriptors = {}
+        self._names = list(specs)
         for name, (default, desc) in specs.items():
             try:
                 self.declare_parameter(name, default, desc)
             except Exception as e:  # out of range or wrong type on the command line
                 raise ConfigError(f"parameter {name}: {e}") from None
-            self._descriptors[name] = desc
 
     def _validate(self, p: dict) -> None:
         for name, valid in CHOICES.items():
