@@ -34,6 +34,7 @@ setup(
         "console_scripts": [
             "inseggan = inseggan_ros.cli:main",
             "bin_replay = inseggan_ros.nodes.bin_replay:main",
+            "segmenter = inseggan_ros.nodes.segmenter:main",
         ],
     },
 )

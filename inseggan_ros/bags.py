@@ -276,6 +276,14 @@ class BagWriter:
                     store.serialize_cdr(msg, IMAGE_TYPE))
         self.count += 1
 
+    def write_image(self, topic: str, stamp_ns: int, array: np.ndarray, encoding: str,
+                    frame_id: str | None = None) -> None:
+        """Any other image (a segmentation output, an overlay) on a topic of its own."""
+        header = _header(self._store, int(stamp_ns), frame_id or self.frame_id)
+        msg = _image_msg(self._store, header, np.asarray(array), encoding)
+        self._writer.write(self._conn(topic, IMAGE_TYPE), int(stamp_ns),
+                           self._store.serialize_cdr(msg, IMAGE_TYPE))
+
     def __exit__(self, exc_type, exc, tb):
         try:
             self._writer.close()

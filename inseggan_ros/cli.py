@@ -309,7 +309,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rotate", action="store_true", help="augment with +-20 degree rotations")
     p.add_argument("--r1-gamma", type=float, help="R1 penalty weight on real frames")
     p.add_argument("--spectral-norm", action="store_true", help="in the discriminator")
-    p.add_argument("--renderer", choices=["learned", "projection"])
+    p.add_argument("--renderer", choices=["learned", "projection", "spheres"])
     p.add_argument("--lr-template", type=float, help="learning rate of an explicit template")
     p.add_argument("--compactness", type=float, help="weight of the template compactness prior")
     p.add_argument("--real-trains-generator", action="store_true",

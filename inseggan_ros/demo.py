@@ -1,10 +1,12 @@
-"""The main job, one command (`make demo`): a simulated bin streamed over DDS and received.
+"""The main job, one command (`make demo`): a simulated bin segmented live over DDS.
 
-Starts `bin_replay` (resolved as `ros2 run inseggan_ros bin_replay` resolves it) as its own
-process, publishing simulated bins; this process subscribes like any downstream node would,
-prints each frame as it arrives (transport latency, instances in the ground truth), and at the
-end writes an overlay contact sheet (PNG) and an MCAP bag of what it received, which it reads
-back to check. When a trained model is shipped (models/), the segmenter joins this pipeline.
+Starts two processes, resolved as `ros2 run inseggan_ros <name>` resolves them:
+  * bin_replay publishes simulated bins (depth + ground-truth labels, the test scenes of seed 0);
+  * segmenter (the shipped model) subscribes to the depth and publishes labels.
+This process listens like any downstream node: it prints, per frame, the end-to-end latency
+(depth stamp -> labels received) and the mIoU of the labels against the simulator's ground truth
+(with K-Means on the same frame for reference), then a summary; it writes an overlay contact sheet
+(PNG) and an MCAP bag of the inputs and outputs, and reads the bag back with rosbags.
 """
 from __future__ import annotations
 
@@ -25,10 +27,21 @@ def _executable(name: str) -> str:
     return str(Path(get_package_prefix("inseggan_ros")) / "lib" / "inseggan_ros" / name)
 
 
+def _stop(proc: subprocess.Popen) -> None:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+    try:
+        proc.wait(timeout=15)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="inseggan-demo", description=__doc__.split("\n")[0])
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--object", default="cylinder")
+    ap.add_argument("--model", default="", help="segmenter model_path ('' = shipped default)")
     ap.add_argument("--rate", type=float, default=5.0)
     ap.add_argument("--out", type=Path, default=Path("demo_out"))
     ap.add_argument("--timeout", type=float, default=120.0)
@@ -40,81 +53,92 @@ def main(argv=None) -> int:
     from sensor_msgs.msg import Image
 
     from . import bags, viz
+    from .baselines import kmeans
+    from .metrics import miou
     from .nodes import conversions
 
     rclpy.init()
     node = rclpy.create_node("inseggan_demo")
-    received: list[tuple] = []
-    labels_by_stamp: dict[int, np.ndarray] = {}
+    depth_by, gt_by, seg_by = {}, {}, {}  # stamp -> (arrival ns, array)
 
-    def on_labels(msg: Image):
-        labels_by_stamp[conversions.stamp_to_ns(msg.header.stamp)] = conversions.image_to_numpy(msg)
+    def keep(store, decode):
+        def cb(msg: Image):
+            store[conversions.stamp_to_ns(msg.header.stamp)] = (time.time_ns(), decode(msg))
+        return cb
 
-    def on_depth(msg: Image):
-        now = time.time_ns()
-        stamp = conversions.stamp_to_ns(msg.header.stamp)
-        received.append((stamp, now, msg.encoding, conversions.depth_to_metres(msg)))
-
-    node.create_subscription(Image, "camera/depth/instance_labels", on_labels,
-                             qos_profile_sensor_data)
-    node.create_subscription(Image, "camera/depth/image_rect_raw", on_depth,
-                             qos_profile_sensor_data)
+    node.create_subscription(Image, "camera/depth/image_rect_raw",
+                             keep(depth_by, conversions.depth_to_metres), qos_profile_sensor_data)
+    node.create_subscription(Image, "camera/depth/instance_labels",
+                             keep(gt_by, conversions.image_to_numpy), qos_profile_sensor_data)
+    node.create_subscription(Image, "segmenter/labels", keep(seg_by, conversions.image_to_numpy), 10)
+    segmenter = subprocess.Popen(
+        [_executable("segmenter"), "--ros-args", "-p", f"model_path:={args.model}",
+         "-r", "depth:=camera/depth/image_rect_raw"], stderr=subprocess.PIPE, text=True)
+    # the segmenter is up (its labels publisher is seen) before the first frame is sent
+    t0 = time.monotonic()
+    while node.count_publishers("segmenter/labels") == 0 and segmenter.poll() is None \
+            and time.monotonic() - t0 < args.timeout:
+        rclpy.spin_once(node, timeout_sec=0.1)
     replay = subprocess.Popen(
         [_executable("bin_replay"), "--ros-args", "-p", f"object:={args.object}",
          "-p", f"rate:={args.rate}", "-p", f"max_frames:={args.frames + 10}"],
         stderr=subprocess.PIPE, text=True)
     print(f"demo: bin_replay (pid {replay.pid}) publishes simulated {args.object} bins at "
-          f"{args.rate} Hz; receiving {args.frames} frames over DDS "
+          f"{args.rate} Hz; segmenter (pid {segmenter.pid}) segments them "
           f"(ROS_DOMAIN_ID={os.environ.get('ROS_DOMAIN_ID', '0')})")
-    print(f"{'frame':>5} {'stamp [s]':>16} {'latency [ms]':>12} {'size':>9} {'instances':>9}")
-    t0 = time.monotonic()
-    shown = 0
+    print(f"{'frame':>5} {'stamp [s]':>14} {'latency [ms]':>12} {'size':>9} {'mIoU':>6} "
+          f"{'K-Means':>7}")
+    done = []  # stamps shown, in order
+    scores = []
     try:
-        while shown < args.frames and time.monotonic() - t0 < args.timeout:
+        while len(done) < args.frames and time.monotonic() - t0 < args.timeout:
             rclpy.spin_once(node, timeout_sec=0.05)
-            while shown < min(len(received), args.frames):
-                stamp, now, enc, depth = received[shown]
-                rclpy.spin_once(node, timeout_sec=0.01)  # its labels, if still in flight
-                lab = labels_by_stamp.get(stamp)
-                n = len(np.unique(lab)) - 1 if lab is not None else -1
-                print(f"{shown:>5} {stamp / 1e9:>16.3f} {(now - stamp) / 1e6:>12.2f} "
-                      f"{depth.shape[1]:>4}x{depth.shape[0]:<4} {n:>9}")
-                shown += 1
-            if replay.poll() is not None:
+            for stamp in sorted(s for s in seg_by if s not in done and s in depth_by and s in gt_by):
+                arrival, labels = seg_by[stamp]
+                depth, gt = depth_by[stamp][1], gt_by[stamp][1]
+                ours, km = miou(labels, gt), miou(kmeans(-depth, gt > 0, int(gt.max())), gt)
+                scores.append((ours, km, (arrival - stamp) / 1e6))
+                done.append(stamp)
+                print(f"{len(done) - 1:>5} {stamp / 1e9:>14.3f} {scores[-1][2]:>12.1f} "
+                      f"{depth.shape[1]:>4}x{depth.shape[0]:<4} {ours:>6.3f} {km:>7.3f}",
+                      flush=True)
+                if len(done) >= args.frames:
+                    break
+            if segmenter.poll() is not None or (replay.poll() is not None and
+                                                  time.monotonic() - t0 > args.timeout / 2):
                 break
     finally:
-        if replay.poll() is None:
-            replay.send_signal(signal.SIGINT)
-        try:
-            replay.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            replay.kill()
+        _stop(replay)
+        _stop(segmenter)
         node.destroy_node()
         rclpy.try_shutdown()
 
-    frames = received[:args.frames]
-    if len(frames) < args.frames:
-        err = replay.stderr.read() if replay.stderr else ""
-        print(f"demo: error: received {len(frames)} of {args.frames} frames in "
+    if len(done) < args.frames:
+        err = (segmenter.stderr.read() or "") + (replay.stderr.read() or "")
+        print(f"demo: error: {len(done)} of {args.frames} frames segmented in "
               f"{args.timeout:.0f} s\n{err}", file=sys.stderr)
         return 1
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
-    for stamp, _, _, depth in frames[:8]:
-        lab = labels_by_stamp.get(stamp, np.zeros(depth.shape, np.uint8))
-        rows.append([viz.colorize_depth(depth), viz.overlay(depth, lab)])
-    sheet = viz.save_sheet(args.out / "received_sheet.png", rows,
-                           col_titles=["received depth", "ground truth overlay"])
-    bag = args.out / f"received_{time.strftime('%Y%m%d_%H%M%S')}"
-    bags.write_frames(bag, [(s, d, labels_by_stamp.get(s), None) for s, _, _, d in frames])
-    back = bags.read_all(bag)
-    lat = np.array([(now - s) / 1e6 for s, now, _, _ in frames])
-    print(f"demo: received {len(frames)} frames; transport latency p50 {np.percentile(lat, 50):.2f}"
-          f" ms, p99 {np.percentile(lat, 99):.2f} ms; labels for "
-          f"{sum(s in labels_by_stamp for s, *_ in frames)}/{len(frames)}")
-    print(f"demo: wrote {sheet} and {bag} (read back: {len(back)} frames)")
-    print("demo: no trained model is shipped yet (models/), so the segmenter is not run")
-    return 0 if len(back) == len(frames) else 1
+    for stamp in done[:6]:
+        depth, gt, lab = depth_by[stamp][1], gt_by[stamp][1], seg_by[stamp][1]
+        rows.append([viz.colorize_depth(depth), viz.overlay(depth, lab), viz.overlay(depth, gt)])
+    sheet = viz.save_sheet(args.out / "segmentation_sheet.png", rows,
+                           col_titles=["depth", "segmenter labels", "ground truth"])
+    bag = args.out / f"demo_{time.strftime('%Y%m%d_%H%M%S')}"
+    with bags.BagWriter(bag) as w:
+        for stamp in done:
+            w.write(stamp, depth_by[stamp][1], gt_by[stamp][1])
+            w.write_image("/segmenter/labels", stamp, seg_by[stamp][1], "mono8")
+    back = bags.read_all(bag, labels_topic="/segmenter/labels")
+    same = all(np.array_equal(f.labels, seg_by[f.stamp_ns][1]) for f in back)
+    s = np.array(scores)
+    print(f"demo: {len(done)} frames segmented; end-to-end latency (stamp -> labels received) "
+          f"p50 {np.percentile(s[:, 2], 50):.1f} ms, p99 {np.percentile(s[:, 2], 99):.1f} ms; "
+          f"mIoU {s[:, 0].mean():.3f} (K-Means on the same frames {s[:, 1].mean():.3f})")
+    print(f"demo: wrote {sheet} and {bag} (read back: {len(back)} frames, segmenter labels "
+          f"{'identical' if same else 'DIFFERENT'})")
+    return 0 if len(back) == len(done) and same else 1
 
 
 if __name__ == "__main__":

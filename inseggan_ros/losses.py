@@ -92,3 +92,15 @@ def r1_penalty(real_logits: torch.Tensor, real: torch.Tensor) -> torch.Tensor:
     """R1 gradient penalty on real images (Mescheder et al. 2018): E ||grad_x D(x)||^2."""
     (grad,) = torch.autograd.grad(real_logits.sum(), real, create_graph=True)
     return grad.pow(2).flatten(1).sum(1).mean()
+
+
+def pyramid_l1(a: torch.Tensor, b: torch.Tensor, levels: int = 1) -> torch.Tensor:
+    """Mean L1 over an image pyramid (2x2 average pooling between levels); levels=1 is plain L1.
+
+    The coarse levels see a misplaced object and its target overlap where the fine level does
+    not, so a render far from its object still gets pulled towards it."""
+    loss = F.l1_loss(a, b)
+    for _ in range(levels - 1):
+        a, b = F.avg_pool2d(a, 2), F.avg_pool2d(b, 2)
+        loss = loss + F.l1_loss(a, b)
+    return loss / levels

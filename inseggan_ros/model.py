@@ -20,11 +20,15 @@ Nothing here imports ROS or the rest of the package.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
+
+
+RENDERERS = ("learned", "projection", "spheres")
 
 
 @dataclass(frozen=True)
@@ -41,6 +45,7 @@ class ModelConfig:
     render_bias: float = 0.0  # initial bias of the renderer's last layer (-2.5: floor prior)
     renderer: str = "learned"  # "learned" (paper: 3D convs + 2D decoder) or "projection"
     template_size: int = 32  # side of the occupancy template ("projection" renderer)
+    spheres: int = 8  # spheres in the template ("spheres" renderer)
     height_gain: float = 1.8  # bin-crop width / max_height: template z units -> image heights
 
     def __post_init__(self):
@@ -54,11 +59,13 @@ class ModelConfig:
             raise ValueError(f"n_instances must be in 1..20, got {self.n_instances}")
         if self.composite not in ("average", "zbuffer"):
             raise ValueError(f"composite {self.composite!r} invalid; valid: average, zbuffer")
-        if self.renderer not in ("learned", "projection"):
-            raise ValueError(f"renderer {self.renderer!r} invalid; valid: learned, projection")
-        if self.renderer == "projection" and self.composite != "zbuffer":
-            raise ValueError("the projection renderer has no features to average: use "
+        if self.renderer not in RENDERERS:
+            raise ValueError(f"renderer {self.renderer!r} invalid; valid: {', '.join(RENDERERS)}")
+        if self.renderer != "learned" and self.composite != "zbuffer":
+            raise ValueError(f"the {self.renderer} renderer has no features to average: use "
                              "composite='zbuffer'")
+        if not 1 <= self.spheres <= 256:
+            raise ValueError(f"spheres must be in 1..256, got {self.spheres}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -246,8 +253,75 @@ class ProjectionGenerator(Generator):
         return (x, None) if return_features else x
 
 
+class SphereGenerator(Generator):
+    """The fastest generator, and the crispest: the template is a chain of K overlapping spheres
+    with learned offsets and radii, and its height map seen from above is closed-form.
+
+    A posed sphere (centre c, radius r) covers the pixels with |xy - c_xy| < r at height
+    c_z + sqrt(r^2 - |xy - c_xy|^2); an instance's height is the max over its spheres, the floor
+    (0) elsewhere. Sphere k sits at sphere k-1 plus an offset shorter than 0.75 (r_{k-1} + r_k),
+    and no radius falls below half the largest, so the template is one connected object by
+    construction: it can stretch into a rod, bend or thicken, but never split into the two
+    separate blobs that free templates grew here (docs/experiments.md). Units: the 64 x 64 image
+    spans [-1, 1] in x and y, heights use the same unit (so rotations are rigid) and
+    2 / height_gain of them map to +1. Silhouettes are softened over about one pixel (a sigmoid
+    coverage) so that poses and the template get gradient. It starts as a small compact ball.
+    """
+
+    def __init__(self, cfg: ModelConfig):
+        nn.Module.__init__(self)
+        self.cfg = cfg
+        self.pose = pose_decoder(cfg.latent_dim)
+        init_weights(self)
+        self._spread_poses()
+        g = torch.Generator().manual_seed(0)
+        self.offsets = nn.Parameter(torch.randn(cfg.spheres - 1, 3, generator=g) * 0.1)
+        self.log_radius = nn.Parameter(torch.tensor(math.log(0.18)))
+        self.radius_shape = nn.Parameter(torch.full((cfg.spheres,), 2.0))
+        self.lift = nn.Parameter(torch.tensor(0.2))  # rest height of the template's centre
+        size = cfg.image_size
+        r = (torch.arange(size) + 0.5) / size * 2 - 1
+        self.register_buffer("px", r.view(1, 1, 1, size), persistent=False)
+        self.register_buffer("py", r.view(1, 1, size, 1), persistent=False)
+
+    def spheres(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """-> centres (K, 3) about their mean, radii (K,): the template in its own frame."""
+        radii = self.log_radius.exp() * (0.5 + 0.5 * torch.sigmoid(self.radius_shape))
+        u = self.offsets
+        u = u / u.norm(dim=1, keepdim=True).clamp_min(1.0)  # |u| <= 1
+        steps = 0.75 * (radii[:-1] + radii[1:])[:, None] * u
+        centres = torch.cat([steps.new_zeros(1, 3), steps.cumsum(0)])
+        return centres - centres.mean(0), radii
+
+    def template_spread(self) -> torch.Tensor:
+        """Mean squared distance of the sphere centres from their mean (a compactness prior)."""
+        c, _ = self.spheres()
+        return (c ** 2).sum(1).mean()
+
+    def render_instances(self, z: torch.Tensor) -> torch.Tensor:
+        B, n, d = z.shape
+        theta = self.poses(z.reshape(B * n, d))  # (M, 3, 4)
+        centres, radii = self.spheres()
+        c = centres @ theta[:, :, :3].transpose(1, 2) + theta[:, None, :, 3]  # (M, K, 3)
+        r = radii.view(1, -1, 1, 1)
+        cx, cy = c[..., 0, None, None], c[..., 1, None, None]
+        cz = c[..., 2, None, None] + self.lift
+        inside = r ** 2 - (self.px - cx) ** 2 - (self.py - cy) ** 2  # (M, K, H, W)
+        pixel = 2.0 / self.cfg.image_size
+        cover = torch.sigmoid(inside / (2 * r * pixel))
+        h = cover * (cz + inside.clamp_min(1e-4).sqrt()).clamp_min(0)
+        h = h.amax(dim=1)  # (M, H, W): the top of the union of spheres
+        x = (h * (self.cfg.height_gain / 2)).clamp(0, 1) * 2 - 1
+        return x.reshape(B, n, *x.shape[1:])
+
+    def forward(self, z: torch.Tensor, return_features: bool = False):
+        x = self.zbuffer(self.render_instances(z))
+        return (x, None) if return_features else x
+
+
 def make_generator(cfg: ModelConfig) -> Generator:
-    return ProjectionGenerator(cfg) if cfg.renderer == "projection" else Generator(cfg)
+    return {"projection": ProjectionGenerator, "spheres": SphereGenerator}.get(
+        cfg.renderer, Generator)(cfg)
 
 
 def _trunk(nf: int, sn: bool = False) -> list[nn.Module]:

@@ -36,10 +36,16 @@ def _gauss(x: torch.Tensor, sigma: float = 0.8) -> torch.Tensor:
 
 
 @torch.no_grad()
-def infer(G, E, x: torch.Tensor, filtered: bool = True) -> dict:
-    """(B, 1, 64, 64) inputs -> codes, single-instance renders (B, n, 64, 64), reconstruction."""
+def infer(G, E, x: torch.Tensor, filtered: bool | None = None) -> dict:
+    """(B, 1, 64, 64) inputs -> codes, single-instance renders (B, n, 64, 64), reconstruction.
+
+    `filtered` (default: for the learned renderer only, whose renders are noisy; the explicit
+    templates render clean edges that a blur would only soften) median- and Gauss-filters
+    every render, as the reference code does."""
     z = E(x)
     renders = G.render_instances(z)
+    if filtered is None:
+        filtered = G.cfg.renderer == "learned"
     if filtered:
         B, n, H, W = renders.shape
         r = renders.reshape(B * n, 1, H, W)
@@ -48,14 +54,35 @@ def infer(G, E, x: torch.Tensor, filtered: bool = True) -> dict:
     return {"z": z, "renders": renders, "reconstruction": recon}
 
 
-def labels_from_renders(renders: torch.Tensor, tau: float, fg: torch.Tensor | None = None):
-    """z-buffer: (B, n, H, W) renders -> (B, H, W) labels (0 = background, 1..n)."""
+def labels_from_renders(renders: torch.Tensor, tau: float, fg: torch.Tensor | None = None,
+                        fill: bool = True):
+    """z-buffer: (B, n, H, W) renders -> (B, H, W) labels (0 = background, 1..n).
+
+    With the input's foreground `fg`, labels are kept on it only, and (`fill`) a foreground
+    pixel that no render reaches (every render below tau there: a slightly too small or
+    misplaced render) takes the label of the nearest labelled pixel, so that every object pixel
+    gets an instance."""
     top, idx = renders.max(dim=1)
     labels = (idx + 1).to(torch.uint8)
     labels[top < tau] = 0
-    if fg is not None:
-        labels[~fg] = 0
+    if fg is None:
+        return labels
+    labels[~fg] = 0
+    if fill:
+        labels = _fill_nearest(labels, fg)
     return labels
+
+
+def _fill_nearest(labels: torch.Tensor, fg: torch.Tensor) -> torch.Tensor:
+    from scipy.ndimage import distance_transform_edt
+
+    lab, fgn = labels.cpu().numpy(), fg.cpu().numpy()
+    for b in range(len(lab)):
+        hole = fgn[b] & (lab[b] == 0)
+        if hole.any() and lab[b].any():
+            _, (iy, ix) = distance_transform_edt(lab[b] == 0, return_indices=True)
+            lab[b][hole] = lab[b][iy[hole], ix[hole]]
+    return torch.from_numpy(lab).to(labels.device)
 
 
 def instance_scores(renders: torch.Tensor, labels: torch.Tensor, tau: float) -> torch.Tensor:
@@ -94,11 +121,18 @@ def calibrate_tau(renders: torch.Tensor, fg: torch.Tensor, labels_gt: np.ndarray
 @dataclass
 class Segmentation:
     labels: np.ndarray  # (H, W) uint8 at the input resolution, 0 = background
-    masks: np.ndarray  # (n, H, W) bool, one per instance (labels == k + 1)
-    reconstruction: np.ndarray  # (H, W) float32 metres: the model's re-rendered depth, 0 outside
+    reconstruction: np.ndarray | None  # (H, W) float32 metres, the model's re-rendered depth
     scores: np.ndarray  # (n,) visible fraction per instance
     labels64: np.ndarray  # (64, 64) at the model's resolution
     x64: np.ndarray  # (64, 64) the model input
+    roi: tuple[int, int, int, int]  # the bin region used (x0, y0, x1, y1)
+    floor_depth: float  # metres
+
+    @property
+    def masks(self) -> np.ndarray:
+        """(n, H, W) bool, one per instance: labels == k + 1."""
+        n = len(self.scores)
+        return self.labels[None] == np.arange(1, n + 1, dtype=np.uint8)[:, None, None]
 
 
 class Segmenter:
@@ -115,29 +149,40 @@ class Segmenter:
         return load_for_inference(path, device=device, tau=tau)
 
     @torch.no_grad()
-    def segment_batch(self, x: np.ndarray | torch.Tensor, fg=None) -> dict:
+    def segment_batch(self, x: np.ndarray | torch.Tensor, fg=None, tau: float | None = None) -> dict:
         """(B, 1, 64, 64) prepared inputs -> labels (B, 64, 64) uint8, renders, scores, recon."""
+        tau = self.tau if tau is None else float(tau)
         x = torch.as_tensor(x, dtype=torch.float32, device=self.device)
         out = infer(self.G, self.E, x)
         fg_t = (x[:, 0] > -1 + 1e-4) if fg is None else torch.as_tensor(fg, device=self.device)
-        labels = labels_from_renders(out["renders"], self.tau, fg_t)
+        labels = labels_from_renders(out["renders"], tau, fg_t)
         out["labels"] = labels
-        out["scores"] = instance_scores(out["renders"], labels, self.tau)
+        out["scores"] = instance_scores(out["renders"], labels, tau)
         return out
 
-    def __call__(self, depth_m: np.ndarray) -> Segmentation:
+    def __call__(self, depth_m: np.ndarray, prep_cfg=None, tau: float | None = None,
+                 reconstruction: bool = True) -> Segmentation:
+        """One depth frame (H, W) in metres -> Segmentation at the input's resolution.
+
+        `prep_cfg` overrides the model's preprocessing (bin region, floor, min_height: the
+        node's parameters); `tau` the calibrated threshold; `reconstruction=False` skips the
+        metric re-rendered depth. Raises ValueError on a bad frame."""
         from .preprocess import labels_to_full, prepare
 
-        prep = prepare(depth_m, self.prep_cfg)
-        out = self.segment_batch(prep.x[None, None], fg=prep.fg[None])
+        prep_cfg = self.prep_cfg if prep_cfg is None else prep_cfg
+        if prep_cfg.max_height != self.prep_cfg.max_height or prep_cfg.size != self.prep_cfg.size:
+            raise ValueError("max_height and size are fixed by the model: "
+                             f"{self.prep_cfg.max_height} m, {self.prep_cfg.size} px")
+        prep = prepare(depth_m, prep_cfg)
+        out = self.segment_batch(prep.x[None, None], fg=prep.fg[None], tau=tau)
         labels64 = out["labels"][0].cpu().numpy()
         labels = labels_to_full(labels64, prep)
-        n = self.model_cfg.n_instances
-        masks = labels[None] == np.arange(1, n + 1, dtype=np.uint8)[:, None, None]
-        recon64 = out["reconstruction"][0, 0].cpu().numpy()
-        recon = self._heights_to_depth(recon64, prep, depth_m.shape)
-        return Segmentation(labels, masks, recon, out["scores"][0].cpu().numpy(), labels64,
-                            prep.x)
+        recon = None
+        if reconstruction:
+            recon64 = out["reconstruction"][0, 0].cpu().numpy()
+            recon = self._heights_to_depth(recon64, prep, prep.shape)
+        return Segmentation(labels, recon, out["scores"][0].cpu().numpy(), labels64, prep.x,
+                            prep.roi, prep.floor_depth)
 
     def _heights_to_depth(self, recon64: np.ndarray, prep, shape) -> np.ndarray:
         """Model output in [-1, 1] (64 x 64) -> metric depth at the input resolution (ROI only)."""

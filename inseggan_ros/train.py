@@ -49,7 +49,8 @@ class TrainConfig:
     lambda_real: float = 0.0  # real-frame reconstruction, G(E(x_real)) vs x_real
     real_trains_generator: bool = False  # that loss also trains G (an autoencoder on real data)
     r1_gamma: float = 0.0  # R1 penalty weight (0 = off)
-    compactness: float = 0.0  # explicit template: weight of mean(occupancy * radius^2)
+    recon_levels: int = 1  # L_p and the real-frame loss: L1 over this many pyramid levels
+    compactness: float = 0.0  # explicit template: weight of its spread (`template_spread`)
     matching: str = "hungarian"
     augment: bool = True  # random flips
     rotate: bool = False  # and small rotations (+-20 degrees)
@@ -65,6 +66,8 @@ class TrainConfig:
     def __post_init__(self):
         if self.batch_size < 2:
             raise ValueError(f"batch_size must be >= 2, got {self.batch_size}")
+        if not 1 <= self.recon_levels <= 6:
+            raise ValueError(f"recon_levels must be in 1..6 (64 px down to 2), got {self.recon_levels}")
         if self.matching not in losses.MATCHINGS:
             raise ValueError(f"matching {self.matching!r} invalid; valid: {', '.join(losses.MATCHINGS)}")
         for name in ("lr_g", "lr_d", "lr_e"):  # lr_template may be 0 (= lr_g)
@@ -94,6 +97,12 @@ CONFIGS: dict[str, TrainConfig] = {
                                               renderer="projection", spectral_norm=True),
                             batch_size=32, lambda_real=1.0, real_trains_generator=True,
                             r1_gamma=10.0, lr_template=0.02, compactness=1.0),
+    # The fastest and crispest: a template made of learned spheres, height maps in closed form.
+    "cpu_spheres": TrainConfig(model=ModelConfig(nf=32, latent_dim=16, composite="zbuffer",
+                                                 renderer="spheres", spectral_norm=True),
+                               batch_size=32, lambda_real=1.0, real_trains_generator=True,
+                               r1_gamma=10.0, lr_template=0.003, compactness=0.1,
+                               recon_levels=4),
     "cpu": TrainConfig(model=ModelConfig(nf=32, latent_dim=16, composite="zbuffer",
                                          render_bias=-2.5),
                        batch_size=32, lambda_real=1.0),
@@ -180,10 +189,11 @@ def weights_checksum(run: Run) -> str:
 def make_run(cfg: TrainConfig, device: str) -> Run:
     G, D, E = build(cfg.model)
     G, D, E = G.to(device), D.to(device), E.to(device)
-    template = [p for name, p in G.named_parameters() if name == "occupancy"]
-    rest = [p for name, p in G.named_parameters() if name != "occupancy"]
+    explicit = ("occupancy", "offsets", "log_radius", "radius_shape", "lift")
+    template = [p for name, p in G.named_parameters() if name in explicit]
+    rest = [p for name, p in G.named_parameters() if name not in explicit]
     groups = [{"params": rest}]
-    if template:  # an explicit occupancy grid needs far larger steps than network weights
+    if template:  # an explicit template needs far larger steps than network weights
         groups.append({"params": template, "lr": cfg.lr_template or cfg.lr_g})
     return Run(cfg, G, D, E,
                torch.optim.Adam(groups, cfg.lr_g, betas=cfg.betas),
@@ -232,7 +242,7 @@ def train_step(run: Run, real: torch.Tensor, amp: bool = False) -> dict:
     with autocast:
         loss_g = losses.g_loss(D(fake).float())
     g0 = _unwrap(G)
-    if cfg.compactness > 0 and hasattr(g0, "occupancy"):
+    if cfg.compactness > 0 and hasattr(g0, "template_spread"):
         loss_g = loss_g + cfg.compactness * g0.template_spread()
     run.opt_g.zero_grad(set_to_none=True)
     loss_g.backward()
@@ -250,11 +260,11 @@ def train_step(run: Run, real: torch.Tensor, amp: bool = False) -> dict:
         l_a = losses.alignment_loss(z.float(), z_hat.float(), cfg.matching)
         l_i = (F.mse_loss(h.float(), target_f.float()) if target_f is not None
                else torch.zeros((), device=real.device))  # projection renderer: no features
-        l_p = F.l1_loss(g(z_hat).float(), x_gen.float())
+        l_p = losses.pyramid_l1(g(z_hat).float(), x_gen.float(), cfg.recon_levels)
         loss_e = l_a + cfg.lambda_i * l_i + cfg.lambda_p * l_p
         l_r = torch.zeros(())
         if joint:
-            l_r = F.l1_loss(g(z_hat_all[B:]).float(), real.float())
+            l_r = losses.pyramid_l1(g(z_hat_all[B:]).float(), real.float(), cfg.recon_levels)
             loss_e = loss_e + cfg.lambda_real * l_r
     run.opt_e.zero_grad(set_to_none=True)
     loss_e.backward()
@@ -264,7 +274,8 @@ def train_step(run: Run, real: torch.Tensor, amp: bool = False) -> dict:
     # data itself; a rigidly posed shared template per code keeps the instances apart
     if cfg.lambda_real > 0 and cfg.real_trains_generator:
         with autocast:
-            l_r = F.l1_loss(G(E(real)).float(), real.float())  # through DDP when distributed
+            l_r = losses.pyramid_l1(G(E(real)).float(), real.float(),  # through DDP if distributed
+                                    cfg.recon_levels)
         run.opt_e.zero_grad(set_to_none=True)
         run.opt_g.zero_grad(set_to_none=True)
         (cfg.lambda_real * l_r).backward()

@@ -1,9 +1,11 @@
 """Model modules: shapes, gradients, pose spread; losses against brute force."""
 import itertools
+import math
 
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
 from inseggan_ros import losses
 from inseggan_ros.model import Discriminator, Encoder, Generator, ModelConfig, rodrigues
@@ -144,3 +146,54 @@ def test_projection_generator_renders_rigid_copies_of_one_template():
     assert G.occupancy.grad.abs().sum() > 0 and z.grad.abs().sum() > 0
     with pytest.raises(ValueError, match="use composite='zbuffer'"):
         ModelConfig(renderer="projection", composite="average")
+
+
+def test_sphere_template_is_one_connected_object_whatever_its_parameters():
+    """The chain of spheres cannot split: after arbitrary (here: random, large) parameters, every
+    single-instance render is one connected blob, and the height map is exact for one sphere."""
+    from scipy import ndimage
+
+    from inseggan_ros.model import SphereGenerator, make_generator
+
+    cfg = ModelConfig(renderer="spheres", composite="zbuffer", spheres=6, **SMALL)
+    G = make_generator(cfg)
+    assert isinstance(G, SphereGenerator)
+    z = torch.randn(4, 3, 16, requires_grad=True)
+    x = G(z)
+    x.mean().backward()
+    assert z.grad.abs().sum() > 0
+    for name in ("offsets", "log_radius", "radius_shape", "lift"):
+        assert getattr(G, name).grad.abs().sum() > 0, f"{name} learns"
+    with torch.no_grad():  # a wild template: long random offsets, uneven radii
+        G.offsets.normal_(0, 3.0)
+        G.radius_shape.normal_(0, 3.0)
+        G.log_radius.fill_(math.log(0.1))
+        centres, radii = G.spheres()
+        gaps = (centres[1:] - centres[:-1]).norm(dim=1)
+        assert (gaps < radii[1:] + radii[:-1]).all(), "consecutive spheres overlap"
+        for img in G.render_instances(torch.randn(8, 3, 16)).flatten(0, 1):
+            drawn = img > -0.9
+            if drawn.sum() > 4:
+                assert ndimage.label(drawn.numpy())[1] == 1
+        # one sphere of radius r at height 0 (centre on the floor): a hemisphere of height r
+        G1 = SphereGenerator(ModelConfig(renderer="spheres", composite="zbuffer", spheres=1,
+                                         **SMALL))
+        G1.lift.fill_(0.0)
+        G1.radius_shape.fill_(50.0)  # factor 1
+        G1.log_radius.fill_(math.log(0.4))
+        G1.pose[-1].weight.zero_()  # identity pose at the image centre
+        img = G1.render_instances(torch.zeros(1, 1, 16))[0, 0]
+        top = (img.max() + 1) / 2 / (cfg.height_gain / 2)  # back to template units
+        assert float(top) == pytest.approx(0.4, abs=0.01)
+        assert float(img[0, 0]) == -1.0  # the floor far from it
+
+
+def test_pyramid_l1_is_l1_at_one_level_and_sees_far_misses_at_coarse_ones():
+    a = torch.full((1, 1, 16, 16), -1.0)
+    b = a.clone()
+    a[..., 0:2, 0:2] = 1.0  # a blob here
+    b[..., 6:8, 6:8] = 1.0  # its target, not overlapping
+    assert losses.pyramid_l1(a, b, 1).item() == pytest.approx(F.l1_loss(a, b).item())
+    near = a.clone().roll((3, 3), (2, 3))  # closer, still not overlapping at full resolution
+    assert losses.pyramid_l1(near, b, 1).item() == pytest.approx(losses.pyramid_l1(a, b, 1).item())
+    assert losses.pyramid_l1(near, b, 4) < losses.pyramid_l1(a, b, 4)

@@ -1,0 +1,393 @@
+"""segmenter: depth frames in, instance labels and masks out (InSeGAN, a trained model).
+
+    ros2 run inseggan_ros segmenter                                  # the shipped default model
+    ros2 run inseggan_ros segmenter --ros-args -r depth:=/camera/depth/image_rect_raw \\
+        -p model_path:=models/cylinder/model.pt -p roi:=[58,58,166,166]
+
+Subscribes (sensor-data QoS, keep-last 1: a slow frame never builds a queue):
+    depth                 sensor_msgs/Image   16UC1 / mono16 millimetres or 32FC1 metres
+                          (default topic: camera/depth/image_rect_raw, as bin_replay publishes)
+Publishes, with the input's header (stamp and frame_id unchanged):
+    ~/labels              sensor_msgs/Image mono8: 0 background, 1..n instances, input size
+    ~/masks               sensor_msgs/Image 8UC<n>: channel k is 255 where instance k+1 is
+    ~/overlay             sensor_msgs/Image rgb8 colour overlay (only computed when subscribed)
+    ~/reconstruction      sensor_msgs/Image 32FC1 metres, the model's re-rendered depth
+                          (only when subscribed; 0 outside the bin)
+    /diagnostics          diagnostic_msgs/DiagnosticArray: rate, latency, error counters
+A bad frame (encoding, size, empty, no valid depth, a resolution change) is logged (throttled),
+counted in diagnostics and skipped; the node keeps serving. A missing or incompatible model
+stops the node at start-up with one clear error line.
+"""
+from __future__ import annotations
+
+import math
+import sys
+import time
+from collections import Counter, deque
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                ParameterType, SetParametersResult)
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import QoSHistoryPolicy, qos_profile_sensor_data
+from sensor_msgs.msg import Image
+
+from .. import image_codec
+from ..checkpoint import CheckpointError
+from . import conversions
+
+DEFAULT_MODEL = "cylinder"  # models/<name>/model.pt, shipped with the package
+
+
+class ConfigError(Exception):
+    """A parameter value the node cannot start with."""
+
+
+def shipped_models_dir() -> Path | None:
+    try:
+        from ament_index_python.packages import get_package_share_directory
+
+        return Path(get_package_share_directory("inseggan_ros")) / "models"
+    except Exception:  # not installed through ament: the source tree
+        here = Path(__file__).resolve().parents[2] / "models"
+        return here if here.is_dir() else None
+
+
+def resolve_model(path: str) -> Path:
+    """'' = the default shipped model; a shipped model's name; or a checkpoint path."""
+    name = path or DEFAULT_MODEL
+    p = Path(name).expanduser()
+    if p.is_file() or p.is_absolute() or "/" in name or name.endswith(".pt"):
+        return p
+    shipped = shipped_models_dir()
+    if shipped and (shipped / name / "model.pt").is_file():
+        return shipped / name / "model.pt"
+    names = sorted(x.name for x in shipped.iterdir() if (x / "model.pt").is_file()) \
+        if shipped and shipped.is_dir() else []
+    raise ConfigError(f"model_path {path!r}: no such model file or shipped model; shipped "
+                      f"models: {', '.join(names) or 'none'}")
+
+
+def _parse_roi(v) -> tuple[int, int, int, int] | None:
+    v = list(v)
+    if not v:
+        return None
+    if len(v) != 4 or not (0 <= v[0] < v[2] and 0 <= v[1] < v[3]):
+        raise ConfigError(f"roi {v} invalid; valid: [] (find the bin) or [x0, y0, x1, y1] "
+                          "pixels with 0 <= x0 < x1, 0 <= y0 < y1")
+    return tuple(int(x) for x in v)
+
+
+def _parse_polygon(v) -> tuple | None:
+    v = list(v)
+    if not v:
+        return None
+    if len(v) < 6 or len(v) % 2 or not all(math.isfinite(x) for x in v):
+        raise ConfigError(f"bin_polygon {v} invalid; valid: [] or [u0, v0, u1, v1, u2, v2, ...] "
+                          "(at least 3 finite pixel points)")
+    return tuple(zip(v[0::2], v[1::2]))
+
+
+class FrameError(ValueError):
+    """A frame the node skips; `reason` is the diagnostics counter it goes to."""
+
+    def __init__(self, reason: str, message: str):
+        super().__init__(message)
+        self.reason = reason
+
+
+class Segmenter(Node):
+    def __init__(self, **kwargs):
+        super().__init__("segmenter", **kwargs)
+        self._declare_startup()
+        self.model_path = resolve_model(self.get_parameter("model_path").value)
+        device = self.get_parameter("device").value
+        if device not in ("auto", "cpu", "cuda"):
+            raise ConfigError(f"parameter device={device!r} invalid; valid: auto, cpu, cuda")
+        from ..segment import Segmenter as Model
+
+        try:
+            self.model = Model.from_checkpoint(self.model_path, device=device)
+        except ValueError as e:  # e.g. cuda asked for but not available
+            raise ConfigError(f"parameter device={device!r}: {e}") from None
+        self._declare_runtime()
+        self.p = {}
+        try:
+            self._apply({name: self._value(name) for name in self._runtime_names})
+        except ValueError as e:
+            raise ConfigError(str(e)) from None
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+        n = self.model.model_cfg.n_instances
+        self.pub_labels = self.create_publisher(Image, "~/labels", 5)
+        self.pub_masks = self.create_publisher(Image, "~/masks", 5)
+        self.pub_overlay = self.create_publisher(Image, "~/overlay", 5)
+        self.pub_recon = self.create_publisher(Image, "~/reconstruction", 5)
+        self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        qos = qos_profile_sensor_data
+        qos.history, qos.depth = QoSHistoryPolicy.KEEP_LAST, 1
+        self.sub = self.create_subscription(Image, "depth", self._on_depth, qos)
+
+        self.counts = Counter()  # received, segmented, skipped and skipped:<reason>
+        self.latency_ms = deque(maxlen=300)  # received -> labels published
+        self.inference_ms = deque(maxlen=300)  # Segmenter call alone
+        self.conversion_ms = deque(maxlen=300)  # message decode + encode
+        self.stamps = deque(maxlen=300)  # monotonic time of each segmented frame
+        self.last_error = ""
+        self._logged = {}  # (reason, message start) -> when last logged
+        self._shape = None  # resolution of the last good frame
+        self._new_shape = (None, 0)  # (shape, consecutive frames) of a changed resolution
+        self._roi_cache = {}  # frame shape -> bin region found in it
+        self.create_timer(self.get_parameter("diagnostics_period").value, self._publish_diagnostics)
+        self.get_logger().info(
+            f"model {self.model_path} ({n} x instances, tau {self.model.tau:.3f}, device "
+            f"{self.model.device}); listening on {self.sub.topic_name}")
+
+    # ------------------------------------------------------------------ parameters
+    @staticmethod
+    def _descriptor(desc, read_only=False, float_range=None, int_range=None, type_=None):
+        pd = ParameterDescriptor(description=desc, read_only=read_only)
+        if type_ is not None:
+            pd.type = type_
+        if float_range:
+            pd.floating_point_range = [FloatingPointRange(
+                from_value=float(float_range[0]), to_value=float(float_range[1]), step=0.0)]
+        if int_range:
+            pd.integer_range = [IntegerRange(from_value=int_range[0], to_value=int_range[1],
+                                             step=1)]
+        return pd
+
+    def _declare(self, specs: dict) -> None:
+        from rclpy.parameter import Parameter
+
+        for name, (default, desc) in specs.items():
+            if isinstance(default, list) and not default:  # [] has no type of its own
+                default = Parameter.Type(desc.type)
+            try:
+                self.declare_parameter(name, default, desc)
+            except Exception as e:  # out of range or wrong type on the command line
+                raise ConfigError(f"parameter {name}: {e}") from None
+
+    def _declare_startup(self) -> None:
+        d = self._descriptor
+        self._declare({
+            "model_path": ("", d("checkpoint file, or the name of a model shipped in "
+                                 f"share/inseggan_ros/models ('' = {DEFAULT_MODEL})",
+                                 read_only=True)),
+            "device": ("auto", d("auto (cuda when available), cpu or cuda", read_only=True)),
+            "diagnostics_period": (1.0, d("seconds between /diagnostics messages", read_only=True,
+                                          float_range=(0.05, 60.0))),
+        })
+
+    def _declare_runtime(self) -> None:
+        d, prep = self._descriptor, self.model.prep_cfg
+        self._runtime_names = ["roi", "bin_polygon", "floor_depth", "min_height", "tau",
+                               "publish_masks", "publish_overlay", "publish_reconstruction",
+                               "resolution_change_frames"]
+        self._declare({
+            "roi": ([], d("bin region [x0, y0, x1, y1] in pixels (end exclusive); [] = find the "
+                          "bin floor automatically (once per resolution)",
+                          type_=ParameterType.PARAMETER_INTEGER_ARRAY)),
+            "bin_polygon": ([], d("bin outline [u0, v0, u1, v1, ...] in pixels; pixels outside "
+                                  "are background; [] = none",
+                                  type_=ParameterType.PARAMETER_DOUBLE_ARRAY)),
+            "floor_depth": (0.0, d("metres from the camera to the bin floor; 0 = estimate per "
+                                   "frame", float_range=(0.0, 20.0))),
+            "min_height": (float(prep.min_height),
+                           d("metres above the floor below which a pixel is background (about "
+                             "half an object height)",
+                             float_range=(0.0, float(prep.max_height)))),
+            "tau": (float(self.model.tau), d("render threshold in [-1, 1] (default: calibrated, "
+                                             "stored in the model)", float_range=(-1.0, 1.0))),
+            "publish_masks": (True, d("publish ~/masks")),
+            "publish_overlay": (True, d("publish ~/overlay (computed only when subscribed)")),
+            "publish_reconstruction": (True, d("publish ~/reconstruction (only when "
+                                               "subscribed)")),
+            "resolution_change_frames": (10, d(
+                "frames of one new resolution in a row after which the node adopts it (the "
+                "earlier ones are skipped)", int_range=(1, 10_000))),
+        })
+
+    def _value(self, name: str):
+        """A parameter's value; an array parameter left unset ([] by default) reads as []."""
+        from rclpy.exceptions import ParameterUninitializedException
+
+        try:
+            return self.get_parameter(name).value
+        except ParameterUninitializedException:
+            return []
+
+    def _apply(self, values: dict) -> None:
+        """Validate a full parameter set and make it current (raises ConfigError)."""
+        new = {**self.p, **values}
+        roi = _parse_roi(new["roi"])
+        polygon = _parse_polygon(new["bin_polygon"])
+        floor = float(new["floor_depth"])
+        prep = replace(self.model.prep_cfg, roi=roi, polygon=polygon,
+                       floor_depth=floor if floor > 0 else None,
+                       min_height=float(new["min_height"]))
+        self.p, self.prep = new, prep
+        self._roi_cache = {}
+
+    def _on_set_parameters(self, params) -> SetParametersResult:
+        values = {x.name: x.value for x in params if x.name in self._runtime_names}
+        try:
+            self._apply(values)
+        except (ConfigError, ValueError) as e:
+            return SetParametersResult(successful=False, reason=str(e))
+        return SetParametersResult(successful=True)
+
+    # ------------------------------------------------------------------ frames
+    def _skip(self, reason: str, message: str) -> None:
+        self.counts["skipped"] += 1
+        self.counts[f"skipped:{reason}"] += 1
+        self.last_error = f"{reason}: {message}"
+        # throttled per kind of problem: a camera repeating one fault logs it every 2 s, and a
+        # different fault in between is still shown
+        key, now = (reason, message[:40]), time.monotonic()
+        if now - self._logged.get(key, -math.inf) >= 2.0:
+            self._logged[key] = now
+            self.get_logger().warning(f"frame skipped ({reason}): {message}")
+
+    def _check_shape(self, shape: tuple[int, int]) -> None:
+        if self._shape is None or shape == self._shape:
+            self._shape, self._new_shape = shape, (None, 0)
+            return
+        seen, k = self._new_shape
+        k = k + 1 if seen == shape else 1
+        self._new_shape = (shape, k)
+        if k >= self.p["resolution_change_frames"]:
+            self.get_logger().warning(f"input resolution changed from {self._shape[1]}x"
+                                      f"{self._shape[0]} to {shape[1]}x{shape[0]}: adopted")
+            self._shape, self._new_shape = shape, (None, 0)
+            return
+        raise FrameError("resolution", f"{shape[1]}x{shape[0]} frame, but the stream is "
+                                       f"{self._shape[1]}x{self._shape[0]}")
+
+    def _prep_for(self, depth: np.ndarray):
+        """The preprocessing config for this frame: the bin region found once per resolution."""
+        if self.prep.roi is not None or self.prep.polygon is not None:
+            return self.prep
+        roi = self._roi_cache.get(depth.shape)
+        if roi is None:
+            from ..preprocess import find_bin_roi
+
+            roi = find_bin_roi(depth)
+            self._roi_cache[depth.shape] = roi
+            self.get_logger().info(f"bin region found: {list(roi)} in the {depth.shape[1]}x"
+                                   f"{depth.shape[0]} frame (set `roi` to fix it)")
+        return replace(self.prep, roi=roi)
+
+    def _on_depth(self, msg: Image) -> None:
+        t0 = time.perf_counter()
+        self.counts["received"] += 1
+        try:
+            try:
+                depth = conversions.depth_to_metres(msg)
+            except image_codec.ImageFormatError as e:
+                raise FrameError("encoding" if "encoding" in str(e) else "size", str(e)) from None
+            self._check_shape(depth.shape)
+            t1 = time.perf_counter()
+            want_recon = self.p["publish_reconstruction"] and \
+                self.pub_recon.get_subscription_count() > 0
+            try:
+                seg = self.model(depth, self._prep_for(depth), tau=self.p["tau"],
+                                 reconstruction=want_recon)
+            except ValueError as e:
+                raise FrameError("depth", str(e)) from None
+            t2 = time.perf_counter()
+            labels_msg = conversions.numpy_to_image(seg.labels, "mono8", msg.header)
+            self.pub_labels.publish(labels_msg)
+            t3 = time.perf_counter()
+        except FrameError as e:
+            self._skip(e.reason, str(e))
+            return
+        except Exception as e:  # never die on a frame; count it and keep serving
+            self._skip("internal", f"{type(e).__name__}: {e}")
+            return
+        self.counts["segmented"] += 1
+        self.stamps.append(time.monotonic())
+        self.latency_ms.append((t3 - t0) * 1e3)
+        self.inference_ms.append((t2 - t1) * 1e3)
+        conv = (t1 - t0) + (t3 - t2)
+        t4 = time.perf_counter()
+        self._publish_extras(msg, depth, seg)
+        self.conversion_ms.append((conv + time.perf_counter() - t4) * 1e3)
+
+    def _publish_extras(self, msg: Image, depth: np.ndarray, seg) -> None:
+        n = self.model.model_cfg.n_instances
+        if self.p["publish_masks"] and self.pub_masks.get_subscription_count() > 0:
+            masks = (seg.labels[..., None] == np.arange(1, n + 1, dtype=np.uint8))
+            self.pub_masks.publish(conversions.numpy_to_image(
+                masks.view(np.uint8) * np.uint8(255), f"8UC{n}", msg.header))
+        if self.p["publish_overlay"] and self.pub_overlay.get_subscription_count() > 0:
+            from .. import viz
+
+            self.pub_overlay.publish(conversions.numpy_to_image(
+                viz.overlay(depth, seg.labels), "rgb8", msg.header))
+        if seg.reconstruction is not None:
+            self.pub_recon.publish(conversions.numpy_to_image(
+                seg.reconstruction.astype(np.float32), "32FC1", msg.header))
+
+    # ------------------------------------------------------------------ diagnostics
+    def _publish_diagnostics(self) -> None:
+        now = time.monotonic()
+        recent = [t for t in self.stamps if now - t <= 5.0]
+        rate = (len(recent) - 1) / (recent[-1] - recent[0]) if len(recent) > 1 and \
+            recent[-1] > recent[0] else 0.0
+
+        def pct(values, q):
+            return f"{np.percentile(values, q):.2f}" if values else "nan"
+
+        values = {
+            "model": str(self.model_path), "device": str(self.model.device),
+            "tau": f"{self.p['tau']:.3f}", "rate_hz": f"{rate:.2f}",
+            "latency_p50_ms": pct(self.latency_ms, 50), "latency_p99_ms": pct(self.latency_ms, 99),
+            "inference_p50_ms": pct(self.inference_ms, 50),
+            "conversion_p50_ms": pct(self.conversion_ms, 50),
+            "frames_received": str(self.counts["received"]),
+            "frames_segmented": str(self.counts["segmented"]),
+            "frames_skipped": str(self.counts["skipped"]),
+        }
+        for key in sorted(k for k in self.counts if k.startswith("skipped:")):
+            values["frames_skipped_" + key.split(":", 1)[1]] = str(self.counts[key])
+        values["last_error"] = self.last_error
+        status = DiagnosticStatus(name=f"{self.get_name()}: instance segmentation",
+                                  hardware_id=str(self.model_path))
+        status.level, status.message = DiagnosticStatus.OK, "segmenting"
+        if self.counts["segmented"] == 0:
+            status.level, status.message = DiagnosticStatus.WARN, "no frame segmented yet"
+        elif self.counts["skipped"]:
+            status.level = DiagnosticStatus.WARN
+            status.message = f"{self.counts['skipped']} frames skipped; last: {self.last_error}"
+        status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
+        arr = DiagnosticArray(status=[status])
+        arr.header.stamp = self.get_clock().now().to_msg()
+        self.pub_diag.publish(arr)
+
+
+def main(args=None) -> int:
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = Segmenter()
+        rclpy.spin(node)
+        return 0
+    except (ConfigError, CheckpointError) as e:
+        print(f"segmenter: error: {e}", file=sys.stderr)
+        return 1
+    except (KeyboardInterrupt, ExternalShutdownException):
+        return 0
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,185 @@
+"""The segmenter node as a real process, fed over real DDS by bin_replay or by a probe process."""
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import installed_executable
+
+from inseggan_ros import image_codec
+from inseggan_ros.baselines import kmeans
+from inseggan_ros.metrics import mean_miou, miou_batch
+from test_bin_replay import start_replay, stop
+
+HERE = Path(__file__).parent
+
+
+def start_segmenter(ns, *params):
+    args = [str(installed_executable("segmenter")), "--ros-args", "-r", f"__ns:={ns}",
+            "-r", "depth:=camera/depth/image_rect_raw"]
+    for p in params:
+        args += ["-p", p]
+    return subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def probe(tmp, ns, count, timeout, frames=None):
+    out = tmp / "probe.npz"
+    args = [sys.executable, str(HERE / "seg_probe.py"), str(out), ns, str(count), str(timeout)]
+    if frames is not None:
+        np.savez(tmp / "frames.npz", **frames)
+        args.append(str(tmp / "frames.npz"))
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "probe ready"
+    return proc, out
+
+
+def finish(proc, out, timeout):
+    rc = proc.wait(timeout=timeout + 30)
+    got = dict(np.load(out, allow_pickle=True))
+    got["diagnostics"] = got["diagnostics"].item()
+    return rc, got
+
+
+def test_bag_replay_is_segmented_better_than_kmeans(tmp):
+    """bin_replay (shipped bag with ground truth) -> segmenter -> probe: labels vs ground truth."""
+    ns = "/seg_e2e"
+    seg = start_segmenter(ns)
+    proc, out = probe(tmp, ns, 12, 120)
+    # looped with the bag's own stamps: frames lost while DDS discovery settles come round again
+    replay = start_replay(ns, "source:=bag", "bag_path:=cylinder_sim", "rate:=4.0",
+                          "restamp:=false", "loop:=true")
+    try:
+        rc, got = finish(proc, out, 120)
+    finally:
+        stop(replay)
+        assert stop(seg) == 0
+    err = seg.stderr.read()
+    assert "Traceback" not in err, err
+    assert rc == 0, f"got {len(got['stamp'])} label images\n{err}"
+    pred, gt, depth = [], [], []
+    for i in range(len(got["stamp"])):
+        lab, g, d = got["labels"][i], got["gt"][i], got["depth"][i]
+        assert d is not None and g is not None, "depth and ground truth of every labelled stamp"
+        # header passed through unchanged: stamp (the key) and frame_id
+        assert got["frame_id"][i] == "camera_depth_optical_frame"
+        assert lab.shape == d.shape and lab.dtype == np.uint8
+        m = got["masks"][i]
+        assert m.shape == (*d.shape, 5) and set(np.unique(m)) <= {0, 255}
+        np.testing.assert_array_equal(m.argmax(-1)[lab > 0] + 1, lab[lab > 0])
+        np.testing.assert_array_equal((m > 0).sum(-1), (lab > 0).astype(int))
+        assert got["overlay"][i].shape == (*d.shape, 3)
+        rec = got["reconstruction"][i]
+        assert rec.shape == d.shape and rec.dtype == np.float32
+        pred.append(lab)
+        gt.append(g)
+        depth.append(image_codec.depth_to_metres(d, str(got["depth_encoding"][i])))
+    ours = mean_miou(miou_batch(np.stack(pred), np.stack(gt)))
+    # K-Means on (x, y, height) of the same frames, at the same resolution, on the true foreground
+    km = mean_miou(miou_batch(np.stack([kmeans(-d, g > 0, 5) for d, g in zip(depth, gt)]),
+                              np.stack(gt)))
+    print(f"segmenter mIoU {ours:.3f} vs K-Means {km:.3f} on {len(pred)} frames")
+    assert ours > km
+    diag = got["diagnostics"]
+    assert int(diag["frames_segmented"]) >= 12 and diag["frames_skipped"] == "0"
+    assert float(diag["latency_p50_ms"]) > 0
+
+
+def _frame(arr, encoding, step=None, data=None, width=None, height=None):
+    s, payload = image_codec.encode(arr, encoding) if arr is not None else (0, b"")
+    return {"encoding": encoding, "width": width if width is not None else arr.shape[1],
+            "height": height if height is not None else arr.shape[0],
+            "step": step if step is not None else s,
+            "data": np.frombuffer(data if data is not None else payload, np.uint8)}
+
+
+def test_bad_frames_are_counted_and_skipped_and_the_node_keeps_serving(tmp):
+    from inseggan_ros.bags import read_all
+    from conftest import BAGS
+
+    good = [f.depth for f in read_all(BAGS / "cylinder_sim")[:2]]  # 224 x 224 16UC1
+    h, w = good[0].shape
+    frames = [
+        _frame(good[0], "16UC1"),  # establishes the stream's resolution
+        _frame(np.zeros((h, w, 3), np.uint8), "rgb8"),  # not a depth encoding
+        _frame(good[0], "16UC1", data=image_codec.encode(good[0], "16UC1")[1][:-10]),  # short
+        _frame(None, "16UC1", width=0, height=0),  # empty
+        _frame(np.zeros((h, w), np.uint16), "16UC1"),  # no valid depth
+        _frame(np.full((h, w), np.nan, np.float32), "32FC1"),  # NaN everywhere
+        _frame(good[0][:, :200].copy(), "16UC1"),  # another resolution
+        _frame(good[1], "16UC1"),  # good again
+        _frame(good[0].astype(np.float32) / 1000, "32FC1"),  # good, metres
+    ]
+    frames = {k: np.array([f[k] for f in frames], dtype=object if k == "data" else None)
+              for k in frames[0]}
+    ns = "/seg_bad"
+    seg = start_segmenter(ns, "diagnostics_period:=0.5")
+    proc, out = probe(tmp, ns, 3, 90, frames)
+    try:
+        rc, got = finish(proc, out, 90)
+        assert seg.poll() is None, "the segmenter died on a bad frame"
+    finally:
+        assert stop(seg) == 0
+    err = seg.stderr.read()
+    assert "Traceback" not in err, err
+    assert rc == 0 and int(got["sent"]) == 9
+    assert sorted(got["frame_id"]) == ["probe_0", "probe_7", "probe_8"]  # the good ones only
+    d = got["diagnostics"]
+    # frame 0 may have been sent more than once (until answered); every other frame once
+    assert int(d["frames_received"]) - int(d["frames_segmented"]) == 6
+    assert d["frames_skipped"] == "6"
+    assert d["frames_skipped_encoding"] == "1"
+    assert d["frames_skipped_size"] == "2"  # short data, empty image
+    assert d["frames_skipped_depth"] == "2"  # all zero, all NaN
+    assert d["frames_skipped_resolution"] == "1"
+    assert d["_level"] == "1"  # WARN: frames were skipped
+    for text in ("unsupported encoding 'rgb8'", "data has", "empty image", "no valid depth",
+                 "200x224 frame, but the stream is 224x224"):
+        assert text in err, (text, err)
+
+
+@pytest.mark.parametrize("params, message", [
+    (["model_path:=/nonexistent/model.pt"], "no such model file"),
+    (["model_path:=no_such_shipped_model"], "shipped models: cylinder"),
+    (["device:=tpu"], "device='tpu' invalid"),
+    (["roi:=[1, 2, 3]"], "roi [1, 2, 3] invalid"),
+    (["tau:=3.0"], "parameter tau"),
+])
+def test_bad_start_up_gives_one_clear_error(params, message):
+    seg = start_segmenter("/seg_badstart", *params)
+    try:
+        rc = seg.wait(timeout=60)
+    finally:
+        stop(seg)
+    err = seg.stderr.read()
+    assert rc == 1, err
+    assert message in err, err
+    assert "Traceback" not in err, err
+
+
+def test_an_incompatible_model_file_stops_the_node(tmp):
+    bad = tmp / "model.pt"
+    bad.write_bytes(b"not a checkpoint")
+    seg = start_segmenter("/seg_badmodel", f"model_path:={bad}")
+    rc = seg.wait(timeout=60)
+    err = seg.stderr.read()
+    assert rc == 1 and "not a readable checkpoint" in err and "Traceback" not in err, err
+
+
+def test_parameter_changes_are_validated_at_run_time():
+    seg = start_segmenter("/seg_params")
+
+    def set_param(name, value):
+        p = subprocess.run([sys.executable, str(HERE / "set_param.py"), "/seg_params/segmenter",
+                            name, value], capture_output=True, text=True, timeout=60)
+        return p.stdout.strip()
+
+    try:
+        assert set_param("tau", "-0.5") == "ok"
+        assert set_param("tau", "2.0").startswith("rejected")  # outside -1..1
+        assert set_param("roi", "[10, 10, 5, 50]").startswith("rejected: roi [10, 10, 5, 50] invalid")
+        assert set_param("roi", "[10, 10, 200, 200]") == "ok"
+        assert set_param("bin_polygon", "[1.0, 2.0]").startswith("rejected: bin_polygon")
+        assert set_param("model_path", "'other.pt'").startswith("rejected")  # read-only
+    finally:
+        assert stop(seg) == 0
