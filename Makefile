@@ -8,7 +8,7 @@ SHELL := /bin/bash
 export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 ENV := source .venv/bin/activate && source install/setup.bash &&
 
-.PHONY: setup build test demo run bench sheet clean
+.PHONY: setup build test demo run bench bench-node sheet clean
 
 setup:
 	@bash scripts/setup.sh
@@ -27,6 +27,10 @@ run: setup
 
 bench: setup
 	@$(ENV) scripts/ros2run inseggan_ros inseggan bench-sim
+
+# segmenter node: 1280x720 16UC1 at 30 Hz for 60 s; latency, drops, peak memory
+bench-node: setup
+	@$(ENV) ROS_DOMAIN_ID=$${ROS_DOMAIN_ID:-43} python -m inseggan_ros.bench_node
 
 sheet: setup
 	@$(ENV) scripts/ros2run inseggan_ros inseggan contact-sheet --out docs/contact_sheet.png

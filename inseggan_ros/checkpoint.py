@@ -82,7 +82,8 @@ def load_for_inference(path, device: str = "auto", tau: float | None = None):
     except (KeyError, TypeError, ValueError) as e:
         raise CheckpointError(f"{path}: bad preprocessing config ({e})") from None
     return Segmenter(G, E, cfg, prep, float(state.get("tau", -0.5) if tau is None else tau),
-                     device=pick_device(device))
+                     device=pick_device(device),
+                     refine_steps=int(state.get("inference", {}).get("refine_steps", 0)))
 
 
 def export_for_inference(src, dst, half: bool = False) -> Path:

@@ -140,7 +140,9 @@ def cmd_train(args) -> int:
                      real_trains_generator=args.real_trains_generator or None,
                      r1_gamma=args.r1_gamma, spectral_norm=args.spectral_norm or None,
                      renderer=args.renderer, lr_template=args.lr_template,
-                     compactness=args.compactness)
+                     compactness=args.compactness, coord_conv=args.coord_conv or None,
+                     recon_levels=args.recon_levels, background_weight=args.background_weight,
+                     real_trains_template=False if args.template_from_gan else None)
     train_data, val_data, prep, info = _load_training_data(args)
     if val_data.get("labels") is None:
         print("no labels in the validation frames: validation uses the reconstruction error")
@@ -182,6 +184,19 @@ def cmd_eval(args) -> int:
           f"({summary['hard_rule']}); model {args.model}, tau {seg.tau:.2f}")
     print(evaluate.format_table(summary))
     print(f"wrote {out / 'results.json'} and {out / 'qualitative.png'}")
+    return 0
+
+
+def cmd_export(args) -> int:
+    from .evaluate import format_table
+    from .modelcard import export_model
+
+    card = export_model(args.checkpoint, args.data, args.name, args.out or Path("models") / args.name,
+                        refine_steps=args.refine_steps, half=not args.no_half,
+                        frames=args.frames, notes=args.config_name or "")
+    print(f"exported {args.name}: tau {card['tau']:.3f}, {card['precision']}, refine steps "
+          f"{card['refine_steps']}; test split:")
+    print(format_table(card["test"]))
     return 0
 
 
@@ -274,6 +289,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, type=Path, help="bag directory to create")
     p.set_defaults(func=cmd_simulate_bag)
 
+    p = sub.add_parser("export", help="ship a trained model: models/<name>/ with a model card")
+    p.add_argument("--checkpoint", type=Path, required=True)
+    p.add_argument("--data", type=Path, required=True, help="its simulated data set (val, test)")
+    p.add_argument("--name", required=True)
+    p.add_argument("--out", type=Path, help="default: models/<name>")
+    p.add_argument("--refine-steps", type=int, default=0, help="test-time refinement steps")
+    p.add_argument("--no-half", action="store_true", help="keep float32 weights")
+    p.add_argument("--frames", type=int, default=200)
+    p.add_argument("--config-name", help="the named training config, for the card")
+    p.set_defaults(func=cmd_export)
+
     p = sub.add_parser("bench-sim", help="simulator throughput (scenes/s)")
     _add_scene_args(p)
     p.add_argument("--scenes", type=int, default=100)
@@ -312,6 +338,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--renderer", choices=["learned", "projection", "spheres"])
     p.add_argument("--lr-template", type=float, help="learning rate of an explicit template")
     p.add_argument("--compactness", type=float, help="weight of the template compactness prior")
+    p.add_argument("--coord-conv", action="store_true", help="encoder sees pixel coordinates")
+    p.add_argument("--recon-levels", type=int, help="pyramid levels of the re-render losses")
+    p.add_argument("--template-from-gan", action="store_true",
+                   help="the real-frame loss trains the poses, not the explicit template")
+    p.add_argument("--background-weight", type=float,
+                   help="real-frame loss: weight of floor pixels (> 1: precision first)")
     p.add_argument("--real-trains-generator", action="store_true",
                    help="the real-frame reconstruction loss also trains the generator")
     p.add_argument("--eval-every", type=int)

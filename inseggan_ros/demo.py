@@ -71,8 +71,9 @@ def main(argv=None) -> int:
     node.create_subscription(Image, "camera/depth/instance_labels",
                              keep(gt_by, conversions.image_to_numpy), qos_profile_sensor_data)
     node.create_subscription(Image, "segmenter/labels", keep(seg_by, conversions.image_to_numpy), 10)
+    model = ["-p", f"model_path:={args.model}"] if args.model else []
     segmenter = subprocess.Popen(
-        [_executable("segmenter"), "--ros-args", "-p", f"model_path:={args.model}",
+        [_executable("segmenter"), "--ros-args", *model,
          "-r", "depth:=camera/depth/image_rect_raw"], stderr=subprocess.PIPE, text=True)
     # the segmenter is up (its labels publisher is seen) before the first frame is sent
     t0 = time.monotonic()

@@ -45,7 +45,8 @@ class ModelConfig:
     render_bias: float = 0.0  # initial bias of the renderer's last layer (-2.5: floor prior)
     renderer: str = "learned"  # "learned" (paper: 3D convs + 2D decoder) or "projection"
     template_size: int = 32  # side of the occupancy template ("projection" renderer)
-    spheres: int = 8  # spheres in the template ("spheres" renderer)
+    spheres: int = 6  # spheres on the template rod ("spheres" renderer)
+    coord_conv: bool = False  # the encoder also sees pixel coordinates (CoordConv)
     height_gain: float = 1.8  # bin-crop width / max_height: template z units -> image heights
 
     def __post_init__(self):
@@ -159,6 +160,11 @@ class Generator(nn.Module):
         p = self.pose(z)
         return torch.cat([rodrigues(p[:, :3]), p[:, 3:, None]], dim=2)
 
+    def alignment_features(self, z: torch.Tensor) -> torch.Tensor:
+        """(B, n, d) codes -> what the encoder's alignment loss L_a compares: the codes
+        themselves (the paper)."""
+        return z
+
     def instance_features(self, z: torch.Tensor) -> torch.Tensor:
         """(B, n, d) codes -> (B, n, 2nf, 16, 16) single-instance feature maps F(z_i)."""
         B, n, d = z.shape
@@ -254,18 +260,22 @@ class ProjectionGenerator(Generator):
 
 
 class SphereGenerator(Generator):
-    """The fastest generator, and the crispest: the template is a chain of K overlapping spheres
-    with learned offsets and radii, and its height map seen from above is closed-form.
+    """The fastest generator, and the crispest: the template is a rod of K overlapping spheres
+    on one axis, with a learned length and learned radii (a solid of revolution), and its
+    height map seen from above is closed-form.
 
     A posed sphere (centre c, radius r) covers the pixels with |xy - c_xy| < r at height
     c_z + sqrt(r^2 - |xy - c_xy|^2); an instance's height is the max over its spheres, the floor
-    (0) elsewhere. Sphere k sits at sphere k-1 plus an offset shorter than 0.75 (r_{k-1} + r_k),
-    and no radius falls below half the largest, so the template is one connected object by
-    construction: it can stretch into a rod, bend or thicken, but never split into the two
-    separate blobs that free templates grew here (docs/experiments.md). Units: the 64 x 64 image
-    spans [-1, 1] in x and y, heights use the same unit (so rotations are rigid) and
-    2 / height_gain of them map to +1. Silhouettes are softened over about one pixel (a sigmoid
-    coverage) so that poses and the template get gradient. It starts as a small compact ball.
+    (0) elsewhere. The centres are evenly spaced along the template's x axis over a learned
+    length, no radius falls below half the largest, and consecutive spheres always overlap, so
+    the template is one rigid, connected, straight object by construction: cylinders, pins,
+    bolts (a thicker head), cones, nuts (short and wide) and, sunk into the floor by a negative
+    `lift`, flat blocks. Free templates (an occupancy grid, a free chain of spheres) grew two
+    blobs or bent into snakes that covered two objects at once (docs/experiments.md).
+    Units: the 64 x 64 image spans [-1, 1] in x and y, heights use the same unit (so rotations
+    are rigid) and 2 / height_gain of them map to +1. Silhouettes are softened over about one
+    pixel (a sigmoid coverage) so that poses and the template get gradient. It starts as a
+    short, thick rod.
     """
 
     def __init__(self, cfg: ModelConfig):
@@ -274,40 +284,65 @@ class SphereGenerator(Generator):
         self.pose = pose_decoder(cfg.latent_dim)
         init_weights(self)
         self._spread_poses()
-        g = torch.Generator().manual_seed(0)
-        self.offsets = nn.Parameter(torch.randn(cfg.spheres - 1, 3, generator=g) * 0.1)
-        self.log_radius = nn.Parameter(torch.tensor(math.log(0.18)))
+        self.log_radius = nn.Parameter(torch.tensor(math.log(0.2)))
         self.radius_shape = nn.Parameter(torch.full((cfg.spheres,), 2.0))
-        self.lift = nn.Parameter(torch.tensor(0.2))  # rest height of the template's centre
+        self.length = nn.Parameter(torch.tensor(0.2))  # axis length (centre to centre)
+        self.lift = nn.Parameter(torch.tensor(0.2))  # height of the axis above the floor
         size = cfg.image_size
         r = (torch.arange(size) + 0.5) / size * 2 - 1
         self.register_buffer("px", r.view(1, 1, 1, size), persistent=False)
         self.register_buffer("py", r.view(1, 1, size, 1), persistent=False)
 
     def spheres(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """-> centres (K, 3) about their mean, radii (K,): the template in its own frame."""
+        """-> centres (K, 3) about the rod's middle, radii (K,): the template in its own frame."""
         radii = self.log_radius.exp() * (0.5 + 0.5 * torch.sigmoid(self.radius_shape))
-        u = self.offsets
-        u = u / u.norm(dim=1, keepdim=True).clamp_min(1.0)  # |u| <= 1
-        steps = 0.75 * (radii[:-1] + radii[1:])[:, None] * u
-        centres = torch.cat([steps.new_zeros(1, 3), steps.cumsum(0)])
-        return centres - centres.mean(0), radii
+        K = self.cfg.spheres
+        # spacing below the smallest radius: consecutive spheres overlap whatever the length
+        length = self.length.abs().clamp(max=0.95 * (K - 1) * float(radii.min().detach()))
+        t = torch.linspace(-0.5, 0.5, K, device=radii.device) if K > 1 else radii.new_zeros(1)
+        centres = torch.stack([t * length, torch.zeros_like(t), torch.zeros_like(t)], dim=1)
+        return centres, radii
 
     def template_spread(self) -> torch.Tensor:
         """Mean squared distance of the sphere centres from their mean (a compactness prior)."""
         c, _ = self.spheres()
         return (c ** 2).sum(1).mean()
 
-    def render_instances(self, z: torch.Tensor) -> torch.Tensor:
+    def alignment_features(self, z: torch.Tensor) -> torch.Tensor:
+        """The pose as far as the rod's render depends on it: translation (3) and the axis
+        direction up to sign (the 6 distinct entries of a a^T). A d-dimensional code decodes to
+        6 pose numbers, so most of z cannot be recovered from an image: comparing the codes
+        themselves leaves L_a stuck near 1 (measured), comparing these does not."""
         B, n, d = z.shape
-        theta = self.poses(z.reshape(B * n, d))  # (M, 3, 4)
+        theta = self.poses(z.reshape(B * n, d))
+        a = theta[:, :, 0]  # the rod's axis (template x) in the world
+        i, j = torch.triu_indices(3, 3)
+        outer = (a[:, :, None] * a[:, None, :])[:, i, j]
+        return torch.cat([theta[:, :, 3], outer], dim=1).reshape(B, n, 9)
+
+    def render_instances(self, z: torch.Tensor, size: int | None = None) -> torch.Tensor:
+        """(B, n, d) -> (B, n, size, size) single-instance renders (default: image_size; a
+        smaller size renders the same scene coarser, for cheap test-time refinement)."""
+        B, n, d = z.shape
+        return self.render_poses(self.pose(z.reshape(B * n, d)).reshape(B, n, 6), size)
+
+    def render_poses(self, pose: torch.Tensor, size: int | None = None) -> torch.Tensor:
+        """(B, n, 6) poses (axis-angle rotation, translation: what the pose decoder outputs)
+        -> (B, n, size, size) single-instance renders."""
+        B, n = pose.shape[:2]
+        p = pose.reshape(B * n, 6)
+        theta = torch.cat([rodrigues(p[:, :3]), p[:, 3:, None]], dim=2)  # (M, 3, 4)
         centres, radii = self.spheres()
         c = centres @ theta[:, :, :3].transpose(1, 2) + theta[:, None, :, 3]  # (M, K, 3)
         r = radii.view(1, -1, 1, 1)
         cx, cy = c[..., 0, None, None], c[..., 1, None, None]
         cz = c[..., 2, None, None] + self.lift
-        inside = r ** 2 - (self.px - cx) ** 2 - (self.py - cy) ** 2  # (M, K, H, W)
-        pixel = 2.0 / self.cfg.image_size
+        px, py = self.px, self.py
+        if size is not None and size != self.cfg.image_size:
+            g = (torch.arange(size, device=pose.device, dtype=px.dtype) + 0.5) / size * 2 - 1
+            px, py = g.view(1, 1, 1, size), g.view(1, 1, size, 1)
+        inside = r ** 2 - (px - cx) ** 2 - (py - cy) ** 2  # (M, K, H, W)
+        pixel = 2.0 / px.shape[-1]
         cover = torch.sigmoid(inside / (2 * r * pixel))
         h = cover * (cz + inside.clamp_min(1e-4).sqrt()).clamp_min(0)
         h = h.amax(dim=1)  # (M, H, W): the top of the union of spheres
@@ -349,11 +384,18 @@ class Encoder(nn.Module):
         super().__init__()
         self.cfg = cfg
         layers = _trunk(cfg.nf)
+        if cfg.coord_conv:  # the image plus its x and y coordinates (CoordConv)
+            layers[0] = nn.Conv2d(3, cfg.nf, 4, 2, 1)
+            r = torch.linspace(-1, 1, cfg.image_size)
+            grid = torch.stack(torch.meshgrid(r, r, indexing="xy"))[None]
+            self.register_buffer("coords", grid, persistent=False)
         self.derender = nn.Sequential(*layers[:5])  # -> (2nf, 16, 16), compared with mean F
         self.head = nn.Sequential(*layers[5:], nn.Conv2d(8 * cfg.nf, cfg.n_instances * cfg.latent_dim, 4, 1, 0))
         init_weights(self)
 
     def forward(self, x: torch.Tensor, return_features: bool = False):
+        if self.cfg.coord_conv:
+            x = torch.cat([x, self.coords.expand(x.shape[0], -1, -1, -1)], dim=1)
         h = self.derender(x)
         z = self.head(h).reshape(x.shape[0], self.cfg.n_instances, self.cfg.latent_dim)
         return (z, h) if return_features else z

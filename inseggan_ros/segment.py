@@ -35,14 +35,115 @@ def _gauss(x: torch.Tensor, sigma: float = 0.8) -> torch.Tensor:
     return F.conv2d(F.pad(x, (0, 0, 2, 2), mode="replicate"), k.view(1, 1, 5, 1))
 
 
+def refine(G, z: torch.Tensor, x: torch.Tensor, steps: int, lr: float = 0.05,
+           levels: int = 3, size: int = 32) -> torch.Tensor:
+    """Analysis by synthesis at test time: a few Adam steps on the codes so that the frozen
+    generator's composite matches the input better (pyramid L1), starting from E(x). Each
+    frame's codes are optimised on their own (the loss is a sum over frames). Generators that
+    can (the sphere rod) render at `size` x `size` for it: 4x cheaper at 32 than at 64."""
+    from .losses import pyramid_l1
+
+    coarse = G.cfg.renderer == "spheres" and size < x.shape[-1]
+    target = F.adaptive_avg_pool2d(x, size) if coarse else x
+    z = z.detach().clone().requires_grad_(True)
+    opt = torch.optim.Adam([z], lr=lr)
+    with torch.enable_grad():
+        for _ in range(steps):
+            pred = G.zbuffer(G.render_instances(z, size)) if coarse else G(z)
+            loss = pyramid_l1(pred, target, levels) * len(x)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+    return z.detach()
+
+
+def _coords(i: torch.Tensor, size: int) -> torch.Tensor:
+    return (i.float() + 0.5) / size * 2 - 1
+
+
 @torch.no_grad()
-def infer(G, E, x: torch.Tensor, filtered: bool | None = None) -> dict:
+def _reseed(G, pose: torch.Tensor, target: torch.Tensor, min_pixels: int) -> torch.Tensor:
+    """Move poorly used instances onto the parts of the input that no render explains (objects
+    the encoder missed, while two renders share another object or one sank out of sight).
+
+    Unexplained blobs are taken largest first; each gets the least visible instance not moved
+    yet, if that instance explains fewer pixels than the blob has. A moved instance keeps its
+    rotation and takes the median height of the frame's visible instances, so that it shows."""
+    from scipy.ndimage import distance_transform_edt, label
+
+    size, n = target.shape[-1], pose.shape[1]
+    singles = G.render_poses(pose, size)  # (B, n, s, s)
+    top, idx = singles.max(dim=1)
+    missing = ((target[:, 0] - top) > 0.25).cpu().numpy()  # object here, nothing rendered
+    drawn = top > -0.95
+    pose = pose.clone()
+    for b in range(len(pose)):
+        blobs, count = label(missing[b])
+        if count == 0:
+            continue
+        sizes = np.bincount(blobs.ravel())[1:]
+        won = [int(((idx[b] == k) & drawn[b]).sum()) for k in range(n)]
+        visible = [k for k in range(n) if won[k] > 0]
+        z_typical = float(pose[b, visible, 5].median()) if visible else float(pose[b, :, 5].max())
+        candidates = sorted(range(n), key=lambda k: won[k])
+        for blob_id in np.argsort(-sizes):
+            if sizes[blob_id] < min_pixels or not candidates:
+                break
+            k = candidates.pop(0)
+            if won[k] >= sizes[blob_id]:
+                break
+            dist = distance_transform_edt(blobs == blob_id + 1)
+            r, c = np.unravel_index(int(dist.argmax()), dist.shape)
+            pose[b, k, 3] = _coords(torch.tensor(c), size)
+            pose[b, k, 4] = _coords(torch.tensor(r), size)
+            pose[b, k, 5] = z_typical
+    return pose
+
+
+def refine_poses(G, z: torch.Tensor, x: torch.Tensor, steps: int, reseeds: int = 2,
+                 size: int = 32, lr: float = 0.03) -> torch.Tensor:
+    """Analysis by synthesis at test time, on the poses themselves (generators with explicit
+    templates): from the encoder's codes, `steps` Adam steps in all on the n poses of each frame
+    so that the z-buffered composite matches the input (pyramid L1 at size x size), in
+    `reseeds` + 1 rounds; between rounds the least visible instance is moved onto the largest
+    unexplained part of the input (`_reseed`). -> (B, n, 6) poses."""
+    from .losses import pyramid_l1
+
+    B, n, d = z.shape
+    with torch.no_grad():
+        pose = G.pose(z.reshape(B * n, d)).reshape(B, n, 6)
+    target = F.adaptive_avg_pool2d(x, size)
+    rounds = reseeds + 1 if steps >= 2 * (reseeds + 1) else 1
+    for r in range(rounds):
+        pose = pose.detach().clone().requires_grad_(True)
+        opt = torch.optim.Adam([pose], lr=lr)
+        with torch.enable_grad():
+            for _ in range(steps // rounds + (steps % rounds if r == rounds - 1 else 0)):
+                pred = G.zbuffer(G.render_poses(pose, size))
+                loss = pyramid_l1(pred, target, 3) * B
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                opt.step()
+        if r < rounds - 1:
+            pose = _reseed(G, pose.detach(), target, min_pixels=max(4, size * size // 150))
+    return pose.detach()
+
+
+@torch.no_grad()
+def infer(G, E, x: torch.Tensor, filtered: bool | None = None, refine_steps: int = 0) -> dict:
     """(B, 1, 64, 64) inputs -> codes, single-instance renders (B, n, 64, 64), reconstruction.
 
     `filtered` (default: for the learned renderer only, whose renders are noisy; the explicit
     templates render clean edges that a blur would only soften) median- and Gauss-filters
     every render, as the reference code does."""
     z = E(x)
+    if refine_steps > 0 and hasattr(G, "render_poses"):
+        pose = refine_poses(G, z, x, refine_steps)
+        renders = G.render_poses(pose)
+        return {"z": z, "pose": pose, "renders": renders,
+                "reconstruction": G.zbuffer(renders)}
+    if refine_steps > 0:
+        z = refine(G, z, x, refine_steps)
     renders = G.render_instances(z)
     if filtered is None:
         filtered = G.cfg.renderer == "learned"
@@ -138,9 +239,13 @@ class Segmentation:
 class Segmenter:
     """A trained model + its preprocessing + tau: depth frames in, segmentations out."""
 
-    def __init__(self, G, E, model_cfg, prep_cfg, tau: float, device: str = "cpu"):
+    def __init__(self, G, E, model_cfg, prep_cfg, tau: float, device: str = "cpu",
+                 refine_steps: int = 0):
         self.G, self.E = G.eval().to(device), E.eval().to(device)
+        for p in self.G.parameters():  # test-time refinement optimises codes, never weights
+            p.requires_grad_(False)
         self.model_cfg, self.prep_cfg, self.tau, self.device = model_cfg, prep_cfg, tau, device
+        self.refine_steps = int(refine_steps)
 
     @staticmethod
     def from_checkpoint(path, device: str = "auto", tau: float | None = None) -> "Segmenter":
@@ -149,11 +254,13 @@ class Segmenter:
         return load_for_inference(path, device=device, tau=tau)
 
     @torch.no_grad()
-    def segment_batch(self, x: np.ndarray | torch.Tensor, fg=None, tau: float | None = None) -> dict:
+    def segment_batch(self, x: np.ndarray | torch.Tensor, fg=None, tau: float | None = None,
+                      refine_steps: int | None = None) -> dict:
         """(B, 1, 64, 64) prepared inputs -> labels (B, 64, 64) uint8, renders, scores, recon."""
         tau = self.tau if tau is None else float(tau)
+        steps = self.refine_steps if refine_steps is None else int(refine_steps)
         x = torch.as_tensor(x, dtype=torch.float32, device=self.device)
-        out = infer(self.G, self.E, x)
+        out = infer(self.G, self.E, x, refine_steps=steps)
         fg_t = (x[:, 0] > -1 + 1e-4) if fg is None else torch.as_tensor(fg, device=self.device)
         labels = labels_from_renders(out["renders"], tau, fg_t)
         out["labels"] = labels
@@ -161,7 +268,7 @@ class Segmenter:
         return out
 
     def __call__(self, depth_m: np.ndarray, prep_cfg=None, tau: float | None = None,
-                 reconstruction: bool = True) -> Segmentation:
+                 reconstruction: bool = True, refine_steps: int | None = None) -> Segmentation:
         """One depth frame (H, W) in metres -> Segmentation at the input's resolution.
 
         `prep_cfg` overrides the model's preprocessing (bin region, floor, min_height: the
@@ -174,7 +281,8 @@ class Segmenter:
             raise ValueError("max_height and size are fixed by the model: "
                              f"{self.prep_cfg.max_height} m, {self.prep_cfg.size} px")
         prep = prepare(depth_m, prep_cfg)
-        out = self.segment_batch(prep.x[None, None], fg=prep.fg[None], tau=tau)
+        out = self.segment_batch(prep.x[None, None], fg=prep.fg[None], tau=tau,
+                                 refine_steps=refine_steps)
         labels64 = out["labels"][0].cpu().numpy()
         labels = labels_to_full(labels64, prep)
         recon = None

@@ -48,8 +48,10 @@ class TrainConfig:
     lambda_p: float = 1.0
     lambda_real: float = 0.0  # real-frame reconstruction, G(E(x_real)) vs x_real
     real_trains_generator: bool = False  # that loss also trains G (an autoencoder on real data)
+    real_trains_template: bool = True  # ... including an explicit template (else: GAN only)
     r1_gamma: float = 0.0  # R1 penalty weight (0 = off)
     recon_levels: int = 1  # L_p and the real-frame loss: L1 over this many pyramid levels
+    background_weight: float = 1.0  # real-frame loss: weight of pixels that are floor
     compactness: float = 0.0  # explicit template: weight of its spread (`template_spread`)
     matching: str = "hungarian"
     augment: bool = True  # random flips
@@ -97,12 +99,11 @@ CONFIGS: dict[str, TrainConfig] = {
                                               renderer="projection", spectral_norm=True),
                             batch_size=32, lambda_real=1.0, real_trains_generator=True,
                             r1_gamma=10.0, lr_template=0.02, compactness=1.0),
-    # The fastest and crispest: a template made of learned spheres, height maps in closed form.
+    # The fastest and crispest: a rod of learned spheres, height maps in closed form.
     "cpu_spheres": TrainConfig(model=ModelConfig(nf=32, latent_dim=16, composite="zbuffer",
                                                  renderer="spheres", spectral_norm=True),
                                batch_size=32, lambda_real=1.0, real_trains_generator=True,
-                               r1_gamma=10.0, lr_template=0.003, compactness=0.1,
-                               recon_levels=4),
+                               r1_gamma=10.0, lr_template=0.003, recon_levels=4),
     "cpu": TrainConfig(model=ModelConfig(nf=32, latent_dim=16, composite="zbuffer",
                                          render_bias=-2.5),
                        batch_size=32, lambda_real=1.0),
@@ -189,7 +190,7 @@ def weights_checksum(run: Run) -> str:
 def make_run(cfg: TrainConfig, device: str) -> Run:
     G, D, E = build(cfg.model)
     G, D, E = G.to(device), D.to(device), E.to(device)
-    explicit = ("occupancy", "offsets", "log_radius", "radius_shape", "lift")
+    explicit = ("occupancy", "log_radius", "radius_shape", "length", "lift")
     template = [p for name, p in G.named_parameters() if name in explicit]
     rest = [p for name, p in G.named_parameters() if name not in explicit]
     groups = [{"params": rest}]
@@ -257,14 +258,16 @@ def train_step(run: Run, real: torch.Tensor, amp: bool = False) -> dict:
         enc_in = torch.cat([x_gen, real]) if joint else x_gen
         z_hat_all, h_all = E(enc_in, return_features=True)
         z_hat, h = z_hat_all[:B], h_all[:B]
-        l_a = losses.alignment_loss(z.float(), z_hat.float(), cfg.matching)
+        l_a = losses.alignment_loss(g.alignment_features(z).float(),
+                                    g.alignment_features(z_hat).float(), cfg.matching)
         l_i = (F.mse_loss(h.float(), target_f.float()) if target_f is not None
                else torch.zeros((), device=real.device))  # projection renderer: no features
         l_p = losses.pyramid_l1(g(z_hat).float(), x_gen.float(), cfg.recon_levels)
         loss_e = l_a + cfg.lambda_i * l_i + cfg.lambda_p * l_p
         l_r = torch.zeros(())
         if joint:
-            l_r = losses.pyramid_l1(g(z_hat_all[B:]).float(), real.float(), cfg.recon_levels)
+            l_r = losses.pyramid_l1(g(z_hat_all[B:]).float(), real.float(), cfg.recon_levels,
+                                    cfg.background_weight)
             loss_e = loss_e + cfg.lambda_real * l_r
     run.opt_e.zero_grad(set_to_none=True)
     loss_e.backward()
@@ -275,10 +278,13 @@ def train_step(run: Run, real: torch.Tensor, amp: bool = False) -> dict:
     if cfg.lambda_real > 0 and cfg.real_trains_generator:
         with autocast:
             l_r = losses.pyramid_l1(G(E(real)).float(), real.float(),  # through DDP if distributed
-                                    cfg.recon_levels)
+                                    cfg.recon_levels, cfg.background_weight)
         run.opt_e.zero_grad(set_to_none=True)
         run.opt_g.zero_grad(set_to_none=True)
         (cfg.lambda_real * l_r).backward()
+        if not cfg.real_trains_template:  # the template learns from the GAN alone
+            for p in run.opt_g.param_groups[1]["params"] if len(run.opt_g.param_groups) > 1 else []:
+                p.grad = None  # Adam skips parameters without a gradient
         run.opt_e.step()
         run.opt_g.step()
     return {"loss_d": loss_d.item(), "loss_g": loss_g.item(), "l_a": l_a.item(),

@@ -149,7 +149,7 @@ def test_projection_generator_renders_rigid_copies_of_one_template():
 
 
 def test_sphere_template_is_one_connected_object_whatever_its_parameters():
-    """The chain of spheres cannot split: after arbitrary (here: random, large) parameters, every
+    """The rod of spheres cannot split: after arbitrary (here: random, large) parameters, every
     single-instance render is one connected blob, and the height map is exact for one sphere."""
     from scipy import ndimage
 
@@ -162,10 +162,10 @@ def test_sphere_template_is_one_connected_object_whatever_its_parameters():
     x = G(z)
     x.mean().backward()
     assert z.grad.abs().sum() > 0
-    for name in ("offsets", "log_radius", "radius_shape", "lift"):
+    for name in ("length", "log_radius", "radius_shape", "lift"):
         assert getattr(G, name).grad.abs().sum() > 0, f"{name} learns"
-    with torch.no_grad():  # a wild template: long random offsets, uneven radii
-        G.offsets.normal_(0, 3.0)
+    with torch.no_grad():  # a wild template: very long, uneven radii
+        G.length.fill_(5.0)
         G.radius_shape.normal_(0, 3.0)
         G.log_radius.fill_(math.log(0.1))
         centres, radii = G.spheres()

@@ -109,6 +109,9 @@ class Segmenter(Node):
         device = self.get_parameter("device").value
         if device not in ("auto", "cpu", "cuda"):
             raise ConfigError(f"parameter device={device!r} invalid; valid: auto, cpu, cuda")
+        import torch
+
+        torch.set_num_threads(self.get_parameter("threads").value)
         from ..segment import Segmenter as Model
 
         try:
@@ -134,10 +137,11 @@ class Segmenter(Node):
         self.sub = self.create_subscription(Image, "depth", self._on_depth, qos)
 
         self.counts = Counter()  # received, segmented, skipped and skipped:<reason>
-        self.latency_ms = deque(maxlen=300)  # received -> labels published
-        self.inference_ms = deque(maxlen=300)  # Segmenter call alone
-        self.conversion_ms = deque(maxlen=300)  # message decode + encode
-        self.stamps = deque(maxlen=300)  # monotonic time of each segmented frame
+        window = self.get_parameter("latency_window").value
+        self.latency_ms = deque(maxlen=window)  # received -> labels published
+        self.inference_ms = deque(maxlen=window)  # Segmenter call alone
+        self.conversion_ms = deque(maxlen=window)  # message decode + encode
+        self.stamps = deque(maxlen=1000)  # monotonic time of each segmented frame
         self.last_error = ""
         self._logged = {}  # (reason, message start) -> when last logged
         self._shape = None  # resolution of the last good frame
@@ -180,8 +184,12 @@ class Segmenter(Node):
                                  f"share/inseggan_ros/models ('' = {DEFAULT_MODEL})",
                                  read_only=True)),
             "device": ("auto", d("auto (cuda when available), cpu or cuda", read_only=True)),
+            "threads": (1, d("CPU threads for inference (1 leaves the other cores to DDS and "
+                             "the rest of the robot)", read_only=True, int_range=(1, 256))),
             "diagnostics_period": (1.0, d("seconds between /diagnostics messages", read_only=True,
                                           float_range=(0.05, 60.0))),
+            "latency_window": (1000, d("frames over which /diagnostics reports latency "
+                                       "percentiles", read_only=True, int_range=(10, 1_000_000))),
         })
 
     def _declare_runtime(self) -> None:

@@ -1,0 +1,192 @@
+"""Segmenter node benchmark (`make bench-node`): latency, throughput and memory, measured.
+
+The segmenter runs as its own process (as `ros2 run` starts it), on the shipped model; this
+process publishes 1280 x 720 16UC1 depth frames (simulated RealSense-like bins with sensor noise,
+a few distinct frames in turn) at 30 Hz for 60 s, and subscribes to the labels. Printed:
+  * node latency, message received -> labels published, measured inside the node (p50, p99 over
+    every frame; the node's own /diagnostics), with the share spent in inference alone and in
+    message conversion;
+  * end-to-end latency as a subscriber sees it (depth stamp -> labels received);
+  * frames sent, received by the node, answered, and dropped (keep-last 1: a frame that arrives
+    while the node is busy replaces the waiting one);
+  * the node's peak resident memory (VmHWM of its process);
+  * for reference, in this process on the same frames: preprocessing + inference alone, and
+    decoding/encoding the Image messages alone.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+
+def _vm_hwm_mb(pid: int) -> float:
+    with open(f"/proc/{pid}/status") as f:
+        for line in f:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def simulated_frames(count: int, width: int, height: int) -> list[np.ndarray]:
+    from .image_codec import metres_to_depth
+    from .sim.camera import get_camera
+    from .sim.dataset import scene_seed
+    from .sim.noise import get_noise
+    from .sim.scene import BinSimulator, SceneConfig
+
+    cfg = SceneConfig(object="cylinder", camera=get_camera("realsense_d435", width, height),
+                      noise=get_noise("realsense"))
+    with BinSimulator(cfg) as sim:
+        return [metres_to_depth(sim.render(scene_seed(7, "test", k)).depth, "16UC1")
+                for k in range(count)]
+
+
+def in_process_reference(frames, model_path: str, repeats: int = 3) -> dict:
+    """Inference alone and conversion alone, in this process (one thread), for comparison."""
+    import torch
+
+    from .image_codec import depth_to_metres
+    from .nodes import conversions
+    from .nodes.segmenter import resolve_model
+    from .preprocess import find_bin_roi
+    from .segment import Segmenter
+
+    torch.set_num_threads(1)
+    seg = Segmenter.from_checkpoint(resolve_model(model_path), device="cpu")
+    from dataclasses import replace
+
+    prep = replace(seg.prep_cfg, roi=find_bin_roi(depth_to_metres(frames[0], "16UC1")))
+    infer_ms, conv_ms = [], []
+    for _ in range(repeats):
+        for raw in frames:
+            msg = conversions.numpy_to_image(raw, "16UC1")
+            t0 = time.perf_counter()
+            depth = conversions.depth_to_metres(msg)
+            t1 = time.perf_counter()
+            out = seg(depth, prep, reconstruction=False)
+            t2 = time.perf_counter()
+            conversions.numpy_to_image(out.labels, "mono8", msg.header)
+            t3 = time.perf_counter()
+            infer_ms.append((t2 - t1) * 1e3)
+            conv_ms.append((t1 - t0 + t3 - t2) * 1e3)
+    return {"inference_ms": np.array(infer_ms), "conversion_ms": np.array(conv_ms)}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="inseggan-bench-node", description=__doc__.split("\n")[0])
+    ap.add_argument("--seconds", type=float, default=60.0)
+    ap.add_argument("--rate", type=float, default=30.0)
+    ap.add_argument("--width", type=int, default=1280)
+    ap.add_argument("--height", type=int, default=720)
+    ap.add_argument("--model", default="", help="segmenter model_path ('' = shipped default)")
+    ap.add_argument("--distinct-frames", type=int, default=8)
+    args = ap.parse_args(argv)
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.qos import qos_profile_sensor_data
+    from sensor_msgs.msg import Image
+
+    from .demo import _executable, _stop
+    from .nodes import conversions
+
+    print(f"bench-node: simulating {args.distinct_frames} {args.width}x{args.height} frames ...",
+          flush=True)
+    from .checkpoint import CheckpointError
+    from .nodes.segmenter import ConfigError
+
+    frames = simulated_frames(args.distinct_frames, args.width, args.height)
+    try:
+        ref = in_process_reference(frames, args.model)
+    except (CheckpointError, ConfigError) as e:
+        print(f"bench-node: error: {e}", file=sys.stderr)
+        return 2
+
+    rclpy.init()
+    node = rclpy.create_node("bench_node")
+    pub = node.create_publisher(Image, "camera/depth/image_rect_raw", qos_profile_sensor_data)
+    answered: dict[int, int] = {}
+    diags = []
+    node.create_subscription(
+        Image, "segmenter/labels",
+        lambda m: answered.__setitem__(conversions.stamp_to_ns(m.header.stamp), time.time_ns()), 10)
+    node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
+    model = ["-p", f"model_path:={args.model}"] if args.model else []
+    seg = subprocess.Popen([_executable("segmenter"), "--ros-args", *model,
+                            "-p", "latency_window:=100000",
+                            "-r", "depth:=camera/depth/image_rect_raw"],
+                           stderr=subprocess.PIPE, text=True)
+    msgs = [conversions.numpy_to_image(f, "16UC1") for f in frames]
+    sent: list[int] = []
+    try:
+        t0 = time.monotonic()  # wait until the segmenter answers a frame: it is connected
+        while not answered and time.monotonic() - t0 < 60 and seg.poll() is None:
+            m = msgs[0]
+            m.header.stamp = node.get_clock().now().to_msg()
+            pub.publish(m)
+            end = time.monotonic() + 0.5
+            while time.monotonic() < end:
+                rclpy.spin_once(node, timeout_sec=0.05)
+        if not answered:
+            print("bench-node: error: the segmenter did not answer\n" + seg.stderr.read(),
+                  file=sys.stderr)
+            return 1
+        answered.clear()
+        diags.clear()
+        base = seg_base = None
+        print(f"bench-node: publishing at {args.rate:.0f} Hz for {args.seconds:.0f} s", flush=True)
+        start = time.monotonic()
+        k = 0
+        while time.monotonic() - start < args.seconds:
+            due = start + k / args.rate
+            while time.monotonic() < due:
+                rclpy.spin_once(node, timeout_sec=max(0.0, min(0.005, due - time.monotonic())))
+            m = msgs[k % len(msgs)]
+            m.header.stamp = node.get_clock().now().to_msg()
+            pub.publish(m)
+            sent.append(conversions.stamp_to_ns(m.header.stamp))
+            k += 1
+            if base is None and diags:
+                base = {kv.key: kv.value for kv in diags[-1].status[0].values}
+        end = time.monotonic() + 3.0  # the last answers and a final diagnostics message
+        while time.monotonic() < end:
+            rclpy.spin_once(node, timeout_sec=0.05)
+        peak_mb = _vm_hwm_mb(seg.pid)
+    finally:
+        _stop(seg)
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+    last = {kv.key: kv.value for kv in diags[-1].status[0].values} if diags else {}
+    got = [s for s in sent if s in answered]
+    e2e = np.array([(answered[s] - s) / 1e6 for s in got])
+    received = int(last.get("frames_received", 0)) - int((base or {}).get("frames_received", 0))
+    print(f"\nsegmenter node, {args.width}x{args.height} 16UC1 at {args.rate:.0f} Hz for "
+          f"{args.seconds:.0f} s (model {last.get('model', '?')}, {last.get('device', '?')})")
+    print(f"  frames: sent {len(sent)}, answered {len(got)} ({100 * len(got) / max(len(sent), 1):.1f} %),"
+          f" dropped {len(sent) - len(got)} (node received about {received}; skipped "
+          f"{last.get('frames_skipped', '?')})")
+    print(f"  node latency (received -> labels published): p50 {last.get('latency_p50_ms')} ms, "
+          f"p99 {last.get('latency_p99_ms')} ms   [target p50 <= 20, p99 <= 40]")
+    print(f"    of which inference p50 {last.get('inference_p50_ms')} ms, message conversion "
+          f"p50 {last.get('conversion_p50_ms')} ms")
+    if len(e2e):
+        print(f"  end to end (stamp -> labels received here): p50 {np.percentile(e2e, 50):.1f} ms,"
+              f" p99 {np.percentile(e2e, 99):.1f} ms")
+    print(f"  peak resident memory of the node: {peak_mb:.0f} MB   [target <= 1024]")
+    print(f"  in this process, same frames, one thread: preprocessing + inference p50 "
+          f"{np.percentile(ref['inference_ms'], 50):.1f} ms (p99 "
+          f"{np.percentile(ref['inference_ms'], 99):.1f}); conversion p50 "
+          f"{np.percentile(ref['conversion_ms'], 50):.2f} ms")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
