@@ -193,7 +193,8 @@ def cmd_export(args) -> int:
 
     card = export_model(args.checkpoint, args.data, args.name, args.out or Path("models") / args.name,
                         refine_steps=args.refine_steps, half=not args.no_half,
-                        frames=args.frames, notes=args.config_name or "")
+                        frames=args.frames, notes=args.config_name or "",
+                        sample_bag=args.sample_bag, also_refine=args.also_refine)
     print(f"exported {args.name}: tau {card['tau']:.3f}, {card['precision']}, refine steps "
           f"{card['refine_steps']}; test split:")
     print(format_table(card["test"]))
@@ -298,6 +299,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-half", action="store_true", help="keep float32 weights")
     p.add_argument("--frames", type=int, default=200)
     p.add_argument("--config-name", help="the named training config, for the card")
+    p.add_argument("--sample-bag", help="name of a shipped bag of this object (tests use it)")
+    p.add_argument("--also-refine", type=int, default=0,
+                   help="also evaluate InSeGAN with this many refinement steps")
     p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("bench-sim", help="simulator throughput (scenes/s)")

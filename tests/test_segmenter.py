@@ -1,15 +1,17 @@
 """The segmenter node as a real process, fed over real DDS by bin_replay or by a probe process."""
+import json
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import installed_executable
+from conftest import REPO, installed_executable
 
 from inseggan_ros import image_codec
 from inseggan_ros.baselines import kmeans
 from inseggan_ros.metrics import mean_miou, miou_batch
+from inseggan_ros.nodes.segmenter import DEFAULT_MODEL
 from test_bin_replay import start_replay, stop
 
 HERE = Path(__file__).parent
@@ -41,8 +43,10 @@ def finish(proc, out, timeout):
     return rc, got
 
 
-def test_bag_replay_is_segmented_better_than_kmeans(tmp):
-    """bin_replay (shipped bag with ground truth) -> segmenter -> probe: labels vs ground truth."""
+@pytest.fixture(scope="module")
+def replayed(tmp_path_factory):
+    """bin_replay (shipped bag with ground truth) -> segmenter -> probe, run once per module."""
+    tmp = tmp_path_factory.mktemp("e2e")
     ns = "/seg_e2e"
     seg = start_segmenter(ns)
     proc, out = probe(tmp, ns, 12, 120)
@@ -53,17 +57,22 @@ def test_bag_replay_is_segmented_better_than_kmeans(tmp):
         rc, got = finish(proc, out, 120)
     finally:
         stop(replay)
-        assert stop(seg) == 0
+        seg_rc = stop(seg)
     err = seg.stderr.read()
-    assert "Traceback" not in err, err
+    assert seg_rc == 0 and "Traceback" not in err, err
     assert rc == 0, f"got {len(got['stamp'])} label images\n{err}"
-    pred, gt, depth = [], [], []
+    return got
+
+
+def test_replayed_bag_is_segmented_with_headers_masks_and_diagnostics(replayed):
+    got = replayed
     for i in range(len(got["stamp"])):
         lab, g, d = got["labels"][i], got["gt"][i], got["depth"][i]
         assert d is not None and g is not None, "depth and ground truth of every labelled stamp"
         # header passed through unchanged: stamp (the key) and frame_id
         assert got["frame_id"][i] == "camera_depth_optical_frame"
         assert lab.shape == d.shape and lab.dtype == np.uint8
+        assert lab.max() <= 5
         m = got["masks"][i]
         assert m.shape == (*d.shape, 5) and set(np.unique(m)) <= {0, 255}
         np.testing.assert_array_equal(m.argmax(-1)[lab > 0] + 1, lab[lab > 0])
@@ -71,18 +80,36 @@ def test_bag_replay_is_segmented_better_than_kmeans(tmp):
         assert got["overlay"][i].shape == (*d.shape, 3)
         rec = got["reconstruction"][i]
         assert rec.shape == d.shape and rec.dtype == np.float32
-        pred.append(lab)
-        gt.append(g)
-        depth.append(image_codec.depth_to_metres(d, str(got["depth_encoding"][i])))
+    diag = got["diagnostics"]
+    assert int(diag["frames_segmented"]) >= 12 and diag["frames_skipped"] == "0"
+    assert float(diag["latency_p50_ms"]) > 0
+    ours, _ = _scores(got)
+    assert ours > 0.3, "well above labelling everything as one object (about 0.2)"
+
+
+def _scores(got) -> tuple[float, float]:
+    pred, gt, depth = [], [], []
+    for i in range(len(got["stamp"])):
+        pred.append(got["labels"][i])
+        gt.append(got["gt"][i])
+        depth.append(image_codec.depth_to_metres(got["depth"][i], str(got["depth_encoding"][i])))
     ours = mean_miou(miou_batch(np.stack(pred), np.stack(gt)))
     # K-Means on (x, y, height) of the same frames, at the same resolution, on the true foreground
     km = mean_miou(miou_batch(np.stack([kmeans(-d, g > 0, 5) for d, g in zip(depth, gt)]),
                               np.stack(gt)))
     print(f"segmenter mIoU {ours:.3f} vs K-Means {km:.3f} on {len(pred)} frames")
+    return ours, km
+
+
+def test_replayed_bag_is_segmented_better_than_kmeans(replayed, request):
+    from test_models import below_kmeans
+
+    card = json.loads((REPO / "models" / DEFAULT_MODEL / "card.json").read_text())
+    if below_kmeans(card):
+        request.applymarker(pytest.mark.xfail(strict=True, reason=(
+            "the default model's card records a test-split mIoU below K-Means")))
+    ours, km = _scores(replayed)
     assert ours > km
-    diag = got["diagnostics"]
-    assert int(diag["frames_segmented"]) >= 12 and diag["frames_skipped"] == "0"
-    assert float(diag["latency_p50_ms"]) > 0
 
 
 def _frame(arr, encoding, step=None, data=None, width=None, height=None):

@@ -195,6 +195,7 @@ class Segmenter(Node):
     def _declare_runtime(self) -> None:
         d, prep = self._descriptor, self.model.prep_cfg
         self._runtime_names = ["roi", "bin_polygon", "floor_depth", "min_height", "tau",
+                               "refine_steps",
                                "publish_masks", "publish_overlay", "publish_reconstruction",
                                "resolution_change_frames"]
         self._declare({
@@ -212,6 +213,9 @@ class Segmenter(Node):
                              float_range=(0.0, float(prep.max_height)))),
             "tau": (float(self.model.tau), d("render threshold in [-1, 1] (default: calibrated, "
                                              "stored in the model)", float_range=(-1.0, 1.0))),
+            "refine_steps": (int(self.model.refine_steps), d(
+                "test-time refinement steps of the poses per frame (default: the model's; each "
+                "step costs about 1-2 ms on one CPU thread)", int_range=(0, 500))),
             "publish_masks": (True, d("publish ~/masks")),
             "publish_overlay": (True, d("publish ~/overlay (computed only when subscribed)")),
             "publish_reconstruction": (True, d("publish ~/reconstruction (only when "
@@ -305,7 +309,7 @@ class Segmenter(Node):
                 self.pub_recon.get_subscription_count() > 0
             try:
                 seg = self.model(depth, self._prep_for(depth), tau=self.p["tau"],
-                                 reconstruction=want_recon)
+                                 reconstruction=want_recon, refine_steps=self.p["refine_steps"])
             except ValueError as e:
                 raise FrameError("depth", str(e)) from None
             t2 = time.perf_counter()

@@ -1,0 +1,82 @@
+"""Every shipped model: its card agrees with its checkpoint, and it segments shipped sample frames.
+
+The quality check compares InSeGAN with K-Means on the frames of the model's sample bag. Where the
+model's own card records that it scored below K-Means on its test split, that check is expected to
+fail (strict xfail: should the model start beating K-Means, the test fails until the card, the
+README and this expectation are updated). Nothing else is relaxed.
+"""
+import functools
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import BAGS, REPO
+
+from inseggan_ros import checkpoint, data, evaluate
+from inseggan_ros.metrics import mean_miou
+
+MODELS = sorted(p.parent for p in (REPO / "models").glob("*/card.json"))
+
+
+def below_kmeans(card: dict) -> bool:
+    m = card["test"]["methods"]
+    return m["inseggan"]["miou_all"] <= m["kmeans"]["miou_all"]
+
+
+def test_the_three_issue_models_and_the_node_default_are_shipped():
+    from inseggan_ros.nodes.segmenter import DEFAULT_MODEL
+
+    names = {p.name for p in MODELS}
+    assert {"cylinder", "hex_nut", "wooden_block"} <= names, names
+    assert DEFAULT_MODEL in names
+
+
+@pytest.mark.parametrize("folder", MODELS, ids=[p.name for p in MODELS])
+def test_card_matches_checkpoint(folder):
+    card = json.loads((folder / "card.json").read_text())
+    path = folder / "model.pt"
+    assert path.stat().st_size <= 20 * 2**20, "at most 20 MB per model"
+    state = checkpoint.load(path)
+    assert "discriminator" not in state and "optimizers" not in state  # inference weights only
+    assert card["model_config"] == state["model_config"]
+    assert card["n_instances"] == state["model_config"]["n_instances"]
+    assert card["tau"] == pytest.approx(state["tau"])
+    assert card["refine_steps"] == state["inference"]["refine_steps"]
+    assert card["precision"] == state["precision"]
+    assert card["iterations"] == state["iteration"]
+    seg = checkpoint.load_for_inference(path, device="cpu")
+    assert seg.tau == pytest.approx(card["tau"]) and seg.refine_steps == card["refine_steps"]
+    readme = (folder / "README.md").read_text()
+    assert f"{card['tau']:.3f}" in readme and (folder / "qualitative.png").is_file()
+
+
+@functools.lru_cache(maxsize=None)
+def sample_bag_scores(folder: Path) -> tuple[float, float, int]:
+    """(InSeGAN mIoU, K-Means mIoU, frames) on the model's shipped sample bag, at 64 x 64."""
+    card = json.loads((folder / "card.json").read_text())
+    seg = checkpoint.load_for_inference(folder / "model.pt", device="cpu")
+    frames = data.load_bag(BAGS / card["sample_bag"], seg.prep_cfg)
+    assert frames["labels"] is not None and len(frames["x"]) >= 6
+    results = evaluate.run_methods(frames, seg.model_cfg.n_instances, seg, ["kmeans"],
+                                   progress=False)
+    ours, km = mean_miou(results["inseggan"]["scores"]), mean_miou(results["kmeans"]["scores"])
+    print(f"{folder.name}: InSeGAN {ours:.3f} vs K-Means {km:.3f} on {len(frames['x'])} frames")
+    return ours, km, len(frames["x"])
+
+
+@pytest.mark.parametrize("folder", MODELS, ids=[p.name for p in MODELS])
+def test_segments_its_sample_bag_into_instances(folder):
+    ours, _, _ = sample_bag_scores(folder)
+    assert ours > 0.3, "well above labelling everything as one object (about 0.2)"
+
+
+@pytest.mark.parametrize("folder", MODELS, ids=[p.name for p in MODELS])
+def test_segments_its_sample_bag_better_than_kmeans(folder, request):
+    card = json.loads((folder / "card.json").read_text())
+    if below_kmeans(card):
+        request.applymarker(pytest.mark.xfail(strict=True, reason=(
+            f"{folder.name}: its card records mIoU {card['test']['methods']['inseggan']['miou_all']:.3f}"
+            f" vs K-Means {card['test']['methods']['kmeans']['miou_all']:.3f} on its test split")))
+    ours, km, _ = sample_bag_scores(folder)
+    assert ours > km
