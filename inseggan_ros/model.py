@@ -47,6 +47,9 @@ class ModelConfig:
     template_size: int = 32  # side of the occupancy template ("projection" renderer)
     spheres: int = 6  # spheres on the template rod ("spheres" renderer)
     coord_conv: bool = False  # the encoder also sees pixel coordinates (CoordConv)
+    radius_profile: str = "free"  # rod radii: "free" (each in 0.5-1 x the largest) or
+    # "monotone" (each at most 25 % smaller than the one before: cylinders, cones, bolts; no
+    # dumbbells)
     height_gain: float = 1.8  # bin-crop width / max_height: template z units -> image heights
 
     def __post_init__(self):
@@ -65,6 +68,8 @@ class ModelConfig:
         if self.renderer != "learned" and self.composite != "zbuffer":
             raise ValueError(f"the {self.renderer} renderer has no features to average: use "
                              "composite='zbuffer'")
+        if self.radius_profile not in ("free", "monotone"):
+            raise ValueError(f"radius_profile {self.radius_profile!r} invalid; valid: free, monotone")
         if not 1 <= self.spheres <= 256:
             raise ValueError(f"spheres must be in 1..256, got {self.spheres}")
 
@@ -285,7 +290,7 @@ class SphereGenerator(Generator):
         init_weights(self)
         self._spread_poses()
         self.log_radius = nn.Parameter(torch.tensor(math.log(0.2)))
-        self.radius_shape = nn.Parameter(torch.full((cfg.spheres,), 2.0))
+        self.radius_shape = nn.Parameter(torch.full((cfg.spheres,), 2.0 if cfg.radius_profile == "free" else 4.0))
         self.length = nn.Parameter(torch.tensor(0.2))  # axis length (centre to centre)
         self.lift = nn.Parameter(torch.tensor(0.2))  # height of the axis above the floor
         size = cfg.image_size
@@ -295,7 +300,11 @@ class SphereGenerator(Generator):
 
     def spheres(self) -> tuple[torch.Tensor, torch.Tensor]:
         """-> centres (K, 3) about the rod's middle, radii (K,): the template in its own frame."""
-        radii = self.log_radius.exp() * (0.5 + 0.5 * torch.sigmoid(self.radius_shape))
+        if self.cfg.radius_profile == "monotone":  # one end to the other, never growing
+            steps = 0.75 + 0.25 * torch.sigmoid(self.radius_shape)
+            radii = self.log_radius.exp() * torch.cat([steps.new_ones(1), steps[1:].cumprod(0)])
+        else:
+            radii = self.log_radius.exp() * (0.5 + 0.5 * torch.sigmoid(self.radius_shape))
         K = self.cfg.spheres
         # spacing below the smallest radius: consecutive spheres overlap whatever the length
         length = self.length.abs().clamp(max=0.95 * (K - 1) * float(radii.min().detach()))

@@ -108,6 +108,7 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, refine_steps: i
     out_dir = Path(out_dir)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.partial-", dir=out_dir.parent))
+    os.chmod(tmp, 0o755)  # mkdtemp makes it private; a model folder is for everyone to read
     try:
         ckpt.save(tmp / "model.pt", keep)
         evaluate.qualitative_png(tmp / "qualitative.png", test, results, count=4)

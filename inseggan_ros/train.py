@@ -101,7 +101,8 @@ CONFIGS: dict[str, TrainConfig] = {
                             r1_gamma=10.0, lr_template=0.02, compactness=1.0),
     # The fastest and crispest: a rod of learned spheres, height maps in closed form.
     "cpu_spheres": TrainConfig(model=ModelConfig(nf=32, latent_dim=16, composite="zbuffer",
-                                                 renderer="spheres", spectral_norm=True),
+                                                 renderer="spheres", spectral_norm=True,
+                                                 radius_profile="monotone"),
                                batch_size=32, lambda_real=1.0, real_trains_generator=True,
                                r1_gamma=10.0, lr_template=0.003, recon_levels=4),
     "cpu": TrainConfig(model=ModelConfig(nf=32, latent_dim=16, composite="zbuffer",

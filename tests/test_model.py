@@ -197,3 +197,17 @@ def test_pyramid_l1_is_l1_at_one_level_and_sees_far_misses_at_coarse_ones():
     near = a.clone().roll((3, 3), (2, 3))  # closer, still not overlapping at full resolution
     assert losses.pyramid_l1(near, b, 1).item() == pytest.approx(losses.pyramid_l1(a, b, 1).item())
     assert losses.pyramid_l1(near, b, 4) < losses.pyramid_l1(a, b, 4)
+
+
+def test_monotone_rod_profile_cannot_become_a_dumbbell():
+    from inseggan_ros.model import SphereGenerator
+
+    G = SphereGenerator(ModelConfig(renderer="spheres", composite="zbuffer", spheres=6,
+                                    radius_profile="monotone", **SMALL))
+    with torch.no_grad():
+        for seed in range(5):
+            G.radius_shape.copy_(torch.randn(6, generator=torch.Generator().manual_seed(seed)) * 5)
+            _, r = G.spheres()
+            assert (r[1:] <= r[:-1] + 1e-7).all() and (r[1:] >= 0.75 * r[:-1] - 1e-7).all()
+    with pytest.raises(ValueError, match="radius_profile"):
+        ModelConfig(renderer="spheres", composite="zbuffer", radius_profile="wavy")
