@@ -47,7 +47,8 @@ def simulated_frames(count: int, width: int, height: int) -> list[np.ndarray]:
                 for k in range(count)]
 
 
-def in_process_reference(frames, model_path: str, repeats: int = 3) -> dict:
+def in_process_reference(frames, model_path: str, refine_steps: int | None = None,
+                         repeats: int = 3) -> dict:
     """Inference alone and conversion alone, in this process (one thread), for comparison."""
     import torch
 
@@ -69,7 +70,7 @@ def in_process_reference(frames, model_path: str, repeats: int = 3) -> dict:
             t0 = time.perf_counter()
             depth = conversions.depth_to_metres(msg)
             t1 = time.perf_counter()
-            out = seg(depth, prep, reconstruction=False)
+            out = seg(depth, prep, reconstruction=False, refine_steps=refine_steps)
             t2 = time.perf_counter()
             conversions.numpy_to_image(out.labels, "mono8", msg.header)
             t3 = time.perf_counter()
@@ -86,6 +87,7 @@ def main(argv=None) -> int:
     ap.add_argument("--height", type=int, default=720)
     ap.add_argument("--model", default="", help="segmenter model_path ('' = shipped default)")
     ap.add_argument("--distinct-frames", type=int, default=8)
+    ap.add_argument("--refine-steps", type=int, help="segmenter refine_steps (default: the model's)")
     args = ap.parse_args(argv)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
@@ -104,7 +106,7 @@ def main(argv=None) -> int:
 
     frames = simulated_frames(args.distinct_frames, args.width, args.height)
     try:
-        ref = in_process_reference(frames, args.model)
+        ref = in_process_reference(frames, args.model, args.refine_steps)
     except (CheckpointError, ConfigError) as e:
         print(f"bench-node: error: {e}", file=sys.stderr)
         return 2
@@ -119,6 +121,8 @@ def main(argv=None) -> int:
         lambda m: answered.__setitem__(conversions.stamp_to_ns(m.header.stamp), time.time_ns()), 10)
     node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
     model = ["-p", f"model_path:={args.model}"] if args.model else []
+    if args.refine_steps is not None:
+        model += ["-p", f"refine_steps:={args.refine_steps}"]
     seg = subprocess.Popen([_executable("segmenter"), "--ros-args", *model,
                             "-p", "latency_window:=100000",
                             "-r", "depth:=camera/depth/image_rect_raw"],
@@ -168,8 +172,10 @@ def main(argv=None) -> int:
     got = [s for s in sent if s in answered]
     e2e = np.array([(answered[s] - s) / 1e6 for s in got])
     received = int(last.get("frames_received", 0)) - int((base or {}).get("frames_received", 0))
+    steps = "the model's" if args.refine_steps is None else args.refine_steps
     print(f"\nsegmenter node, {args.width}x{args.height} 16UC1 at {args.rate:.0f} Hz for "
-          f"{args.seconds:.0f} s (model {last.get('model', '?')}, {last.get('device', '?')})")
+          f"{args.seconds:.0f} s (model {last.get('model', '?')}, {last.get('device', '?')}, "
+          f"refine_steps {steps})")
     print(f"  frames: sent {len(sent)}, answered {len(got)} ({100 * len(got) / max(len(sent), 1):.1f} %),"
           f" dropped {len(sent) - len(got)} (node received about {received}; skipped "
           f"{last.get('frames_skipped', '?')})")

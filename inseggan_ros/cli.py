@@ -300,7 +300,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, default=200)
     p.add_argument("--config-name", help="the named training config, for the card")
     p.add_argument("--sample-bag", help="name of a shipped bag of this object (tests use it)")
-    p.add_argument("--also-refine", type=int, default=0,
+    p.add_argument("--also-refine", type=int,
                    help="also evaluate InSeGAN with this many refinement steps")
     p.set_defaults(func=cmd_export)
 
@@ -326,7 +326,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--roi", help="bin region x0,y0,x1,y1 in pixels for bags (default: found)")
     p.add_argument("--min-height", type=float, default=0.006, help="metres above the floor")
     p.add_argument("--max-height", type=float, default=0.05, help="metres mapped to +1")
-    p.add_argument("--config", default="cpu", help="named config: cpu, cpu_fast, paper_cpu, paper")
+    p.add_argument("--config", default="cpu_spheres",
+                   help="named config: cpu_spheres (default), cpu, cpu_fast, paper_cpu, paper")
     p.add_argument("--out", type=Path, required=True, help="run directory")
     p.add_argument("--minutes", type=float, help="wall-clock budget")
     p.add_argument("--iterations", type=int, help="iteration budget")
