@@ -54,6 +54,8 @@ from sklearn.cluster import KMeans, spectral_clustering
 from sklearn.feature_extraction.image import img_to_graph
 from threadpoolctl import ThreadpoolController
 
+from .preprocess import fill_labels_nearest
+
 
 # --------------------------------------------------------------------------- shared helpers
 
@@ -140,16 +142,6 @@ def _kmeans_labels(heights: np.ndarray, mask: np.ndarray, n: int, seed: int) -> 
     labels = np.zeros(mask.shape, np.uint8)
     labels[mask] = km.fit_predict(_features(heights, mask, height_weight=0.25)) + 1
     return labels
-
-
-def _fill_nearest(labels: np.ndarray, fg: np.ndarray) -> np.ndarray:
-    """Give every unlabelled fg pixel the label of the nearest labelled pixel; 0 outside fg."""
-    unlabelled = labels == 0
-    if unlabelled.all():
-        raise RuntimeError("no labelled pixel to propagate labels from")
-    _, (iy, ix) = ndimage.distance_transform_edt(unlabelled, return_indices=True)
-    out = np.where(fg, labels[iy, ix], 0)
-    return out.astype(np.uint8)
 
 
 def _ensure_n_labels(labels: np.ndarray, heights: np.ndarray, n: int, seed: int) -> np.ndarray:
@@ -255,7 +247,7 @@ def spectral(heights: np.ndarray, fg: np.ndarray, n: int, seed: int = 0) -> np.n
                                    eigen_tol=1e-6, random_state=seed)
     labels = np.zeros(fg.shape, np.uint8)
     labels[core] = clusters + 1  # img_to_graph numbers the mask pixels in row-major order
-    return _fill_nearest(_ensure_n_labels(labels, heights, n, seed), fg)
+    return fill_labels_nearest(_ensure_n_labels(labels, heights, n, seed), fg)
 
 
 @_single_threaded
@@ -293,7 +285,7 @@ def grabcut_kmeans(heights: np.ndarray, fg: np.ndarray, n: int, seed: int = 0) -
         refined = fg & ((mask == cv2.GC_FGD) | (mask == cv2.GC_PR_FGD))
         if refined.sum() <= n:  # GrabCut dropped (nearly) everything: keep the input mask
             refined = fg
-    return _fill_nearest(_kmeans_labels(heights, refined, n, seed), fg)
+    return fill_labels_nearest(_kmeans_labels(heights, refined, n, seed), fg)
 
 
 @_single_threaded
@@ -325,7 +317,7 @@ def felzenszwalb(heights: np.ndarray, fg: np.ndarray, n: int, seed: int = 0) -> 
     lut = np.zeros(segments.max() + 1, np.uint8)
     lut[keep] = np.arange(1, len(keep) + 1)
     labels = np.where(fg, lut[segments], 0).astype(np.uint8)
-    return _ensure_n_labels(_fill_nearest(labels, fg), heights, n, seed)
+    return _ensure_n_labels(fill_labels_nearest(labels, fg), heights, n, seed)
 
 
 BASELINES: dict[str, Callable[[np.ndarray, np.ndarray, int, int], np.ndarray]] = {

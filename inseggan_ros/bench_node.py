@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import signal
 import subprocess
 import sys
 import time
@@ -50,6 +49,8 @@ def simulated_frames(count: int, width: int, height: int) -> list[np.ndarray]:
 def in_process_reference(frames, model_path: str, refine_steps: int | None = None,
                          repeats: int = 3) -> dict:
     """Inference alone and conversion alone, in this process (one thread), for comparison."""
+    from dataclasses import replace
+
     import torch
 
     from .image_codec import depth_to_metres
@@ -60,8 +61,6 @@ def in_process_reference(frames, model_path: str, refine_steps: int | None = Non
 
     torch.set_num_threads(1)
     seg = Segmenter.from_checkpoint(resolve_model(model_path), device="cpu")
-    from dataclasses import replace
-
     prep = replace(seg.prep_cfg, roi=find_bin_roi(depth_to_metres(frames[0], "16UC1")))
     infer_ms, conv_ms = [], []
     for _ in range(repeats):
@@ -144,7 +143,7 @@ def main(argv=None) -> int:
             return 1
         answered.clear()
         diags.clear()
-        base = seg_base = None
+        base = None
         print(f"bench-node: publishing at {args.rate:.0f} Hz for {args.seconds:.0f} s", flush=True)
         start = time.monotonic()
         k = 0

@@ -99,6 +99,11 @@ def rodrigues(axis_angle: torch.Tensor) -> torch.Tensor:
     return eye + s * K + (1 - c) * (K @ K)
 
 
+def pose_matrix(p: torch.Tensor) -> torch.Tensor:
+    """(M, 6) axis-angle rotation + translation (the pose decoder's output) -> (M, 3, 4) [R | t]."""
+    return torch.cat([rodrigues(p[:, :3]), p[:, 3:, None]], dim=2)
+
+
 def pose_decoder(d: int) -> nn.Sequential:
     """MLP code -> 6 pose numbers: d -> d/2 -> d/4 -> 6 as the paper (d = 128), LeakyReLU, no
     bias; at least 64 -> 32 hidden units for small codes."""
@@ -121,6 +126,8 @@ class ResBlock3d(nn.Module):
 
 
 class Generator(nn.Module):
+    template_parameters: tuple[str, ...] = ()  # explicit template: its own learning rate
+
     def __init__(self, cfg: ModelConfig):
         super().__init__()
         self.cfg = cfg
@@ -162,8 +169,7 @@ class Generator(nn.Module):
 
     def poses(self, z: torch.Tensor) -> torch.Tensor:
         """(M, d) codes -> (M, 3, 4) affine [R | t] for the spatial transformer."""
-        p = self.pose(z)
-        return torch.cat([rodrigues(p[:, :3]), p[:, 3:, None]], dim=2)
+        return pose_matrix(self.pose(z))
 
     def alignment_features(self, z: torch.Tensor) -> torch.Tensor:
         """(B, n, d) codes -> what the encoder's alignment loss L_a compares: the codes
@@ -226,6 +232,8 @@ class ProjectionGenerator(Generator):
     units; the 64 x 64 image spans [-1, 1]); the volume's z axis is height above the floor.
     """
 
+    template_parameters = ("occupancy",)
+
     def __init__(self, cfg: ModelConfig):
         nn.Module.__init__(self)
         self.cfg = cfg
@@ -282,6 +290,8 @@ class SphereGenerator(Generator):
     pixel (a sigmoid coverage) so that poses and the template get gradient. It starts as a
     short, thick rod.
     """
+
+    template_parameters = ("log_radius", "radius_shape", "length", "lift")
 
     def __init__(self, cfg: ModelConfig):
         nn.Module.__init__(self)
@@ -340,7 +350,7 @@ class SphereGenerator(Generator):
         -> (B, n, size, size) single-instance renders."""
         B, n = pose.shape[:2]
         p = pose.reshape(B * n, 6)
-        theta = torch.cat([rodrigues(p[:, :3]), p[:, 3:, None]], dim=2)  # (M, 3, 4)
+        theta = pose_matrix(p)  # (M, 3, 4)
         centres, radii = self.spheres()
         c = centres @ theta[:, :, :3].transpose(1, 2) + theta[:, None, :, 3]  # (M, K, 3)
         r = radii.view(1, -1, 1, 1)

@@ -20,17 +20,16 @@ import shutil
 import tempfile
 from pathlib import Path
 
-import numpy as np
 
 HALF_TOLERANCE = 0.002
 
 
 def _val_miou(seg, val: dict) -> float:
-    from .metrics import mean_miou, miou_batch
+    from . import evaluate
+    from .metrics import mean_miou
 
-    outs = [seg.segment_batch(val["x"][i:i + 50], val["fg"][i:i + 50]) for i in range(0, len(val["x"]), 50)]
-    labels = np.concatenate([o["labels"].cpu().numpy() for o in outs])
-    return float(mean_miou(miou_batch(labels, val["labels"])))
+    results = evaluate.run_methods(val, seg.model_cfg.n_instances, seg, methods=[], progress=False)
+    return float(mean_miou(results["inseggan"]["scores"]))
 
 
 def export_model(checkpoint_path, data_root, name: str, out_dir, refine_steps: int = 0,

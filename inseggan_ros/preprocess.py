@@ -377,6 +377,18 @@ def masks_to_full(masks64: np.ndarray, prep: Prepared) -> np.ndarray:
     return out
 
 
+def fill_labels_nearest(labels: np.ndarray, fg: np.ndarray) -> np.ndarray:
+    """Give every unlabelled fg pixel the label of the nearest labelled pixel (exact Euclidean
+    distance, scipy.ndimage); 0 outside fg. Raises when no pixel is labelled."""
+    from scipy.ndimage import distance_transform_edt
+
+    unlabelled = labels == 0
+    if unlabelled.all():
+        raise RuntimeError("no labelled pixel to propagate labels from")
+    _, (iy, ix) = distance_transform_edt(unlabelled, return_indices=True)
+    return np.where(fg, labels[iy, ix], 0).astype(np.uint8)
+
+
 def resize_labels(labels_full: np.ndarray, prep: Prepared) -> np.ndarray:
     """Ground-truth labels (H, W) of the input -> (size, size): the region, nearest neighbour,
     zero where the model's input is background (`prep.fg` false). For evaluation."""

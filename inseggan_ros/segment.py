@@ -35,26 +35,28 @@ def _gauss(x: torch.Tensor, sigma: float = 0.8) -> torch.Tensor:
     return F.conv2d(F.pad(x, (0, 0, 2, 2), mode="replicate"), k.view(1, 1, 5, 1))
 
 
-def refine(G, z: torch.Tensor, x: torch.Tensor, steps: int, lr: float = 0.05,
-           levels: int = 3, size: int = 32) -> torch.Tensor:
-    """Analysis by synthesis at test time: a few Adam steps on the codes so that the frozen
-    generator's composite matches the input better (pyramid L1), starting from E(x). Each
-    frame's codes are optimised on their own (the loss is a sum over frames). Generators that
-    can (the sphere rod) render at `size` x `size` for it: 4x cheaper at 32 than at 64."""
-    from .losses import pyramid_l1
-
-    coarse = G.cfg.renderer == "spheres" and size < x.shape[-1]
-    target = F.adaptive_avg_pool2d(x, size) if coarse else x
-    z = z.detach().clone().requires_grad_(True)
-    opt = torch.optim.Adam([z], lr=lr)
+def _adam_fit(param: torch.Tensor, loss_of, steps: int, lr: float) -> torch.Tensor:
+    """`steps` Adam steps on a copy of `param` minimising loss_of(param); -> the result."""
+    param = param.detach().clone().requires_grad_(True)
+    opt = torch.optim.Adam([param], lr=lr)
     with torch.enable_grad():
         for _ in range(steps):
-            pred = G.zbuffer(G.render_instances(z, size)) if coarse else G(z)
-            loss = pyramid_l1(pred, target, levels) * len(x)
+            loss = loss_of(param)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
-    return z.detach()
+    return param.detach()
+
+
+def refine(G, z: torch.Tensor, x: torch.Tensor, steps: int, lr: float = 0.05,
+           levels: int = 3) -> torch.Tensor:
+    """Analysis by synthesis at test time, for generators without explicit poses: a few Adam
+    steps on the codes so that the frozen generator's composite matches the input better
+    (pyramid L1), starting from E(x). Each frame's codes are optimised on their own (the loss is
+    a sum over frames)."""
+    from .losses import pyramid_l1
+
+    return _adam_fit(z, lambda z_: pyramid_l1(G(z_), x, levels) * len(x), steps, lr)
 
 
 def _coords(i: torch.Tensor, size: int) -> torch.Tensor:
@@ -114,16 +116,12 @@ def refine_poses(G, z: torch.Tensor, x: torch.Tensor, steps: int, reseeds: int =
         pose = G.pose(z.reshape(B * n, d)).reshape(B, n, 6)
     target = F.adaptive_avg_pool2d(x, size)
     rounds = reseeds + 1 if steps >= 2 * (reseeds + 1) else 1
+
+    def loss_of(p):
+        return pyramid_l1(G.zbuffer(G.render_poses(p, size)), target, 3) * B
+
     for r in range(rounds):
-        pose = pose.detach().clone().requires_grad_(True)
-        opt = torch.optim.Adam([pose], lr=lr)
-        with torch.enable_grad():
-            for _ in range(steps // rounds + (steps % rounds if r == rounds - 1 else 0)):
-                pred = G.zbuffer(G.render_poses(pose, size))
-                loss = pyramid_l1(pred, target, 3) * B
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                opt.step()
+        pose = _adam_fit(pose, loss_of, steps // rounds + (steps % rounds if r == rounds - 1 else 0), lr)
         if r < rounds - 1:
             pose = _reseed(G, pose.detach(), target, min_pixels=max(4, size * size // 150))
     return pose.detach()
@@ -175,14 +173,13 @@ def labels_from_renders(renders: torch.Tensor, tau: float, fg: torch.Tensor | No
 
 
 def _fill_nearest(labels: torch.Tensor, fg: torch.Tensor) -> torch.Tensor:
-    from scipy.ndimage import distance_transform_edt
+    """`preprocess.fill_labels_nearest` on every frame that has a label and a hole to fill."""
+    from .preprocess import fill_labels_nearest
 
     lab, fgn = labels.cpu().numpy(), fg.cpu().numpy()
     for b in range(len(lab)):
-        hole = fgn[b] & (lab[b] == 0)
-        if hole.any() and lab[b].any():
-            _, (iy, ix) = distance_transform_edt(lab[b] == 0, return_indices=True)
-            lab[b][hole] = lab[b][iy[hole], ix[hole]]
+        if (fgn[b] & (lab[b] == 0)).any() and lab[b].any():
+            lab[b] = fill_labels_nearest(lab[b], fgn[b])
     return torch.from_numpy(lab).to(labels.device)
 
 

@@ -1,12 +1,13 @@
 """Training InSeGAN: one iteration = discriminator step, generator step, encoder step.
 
-    inseggan train --data data/cylinder --config cpu --out runs/cylinder --minutes 60
+    inseggan train --data data/cylinder --out runs/cylinder --minutes 60   (config cpu_spheres)
     torchrun --nproc_per_node 2 -m inseggan_ros.cli train ...        (DistributedDataParallel)
 
 Per iteration (paper Sec. 3 and DESIGN.md):
   1. D: BCE(D(x_real), 1) + BCE(D(G(Z)), 0), Z ~ N(0, I), n codes per image;
   2. G: BCE(D(G(Z)), 1) (non-saturating);
-  3. E, generator frozen: L_a (codes vs. best-matched encoded codes) + l_i L_i (derenderer vs.
+  3. E, generator frozen: L_a (codes, or for explicit templates the pose features a render
+     depends on, vs. the best-matched encoded ones) + l_i L_i (derenderer vs.
      mean instance feature) + l_p L_p (||G(Z) - G(E(G(Z)))||_1), plus, in this project's
      configs, l_r ||x_real - G(E(x_real))||_1: the encoder also learns to explain *real* frames
      through the frozen generator (analysis by synthesis on the data it will see at run time).
@@ -92,20 +93,20 @@ CONFIGS: dict[str, TrainConfig] = {
     "paper": TrainConfig(model=ModelConfig(nf=64, composite="average"), batch_size=128),
     # The paper's recipe scaled to a CPU (the prototype DESIGN.md describes).
     "paper_cpu": TrainConfig(model=ModelConfig(nf=32, composite="average"), batch_size=64),
-    # This project's CPU default: instances rendered alone and z-buffered in training as at test
-    # time, and the encoder also fitted to real frames through the frozen generator.
     # A fast generator for a CPU: explicit occupancy template + fixed projection renderer.
     "cpu_fast": TrainConfig(model=ModelConfig(nf=32, latent_dim=16, composite="zbuffer",
                                               renderer="projection", spectral_norm=True),
                             batch_size=32, lambda_real=1.0, real_trains_generator=True,
                             r1_gamma=10.0, lr_template=0.02, compactness=1.0),
-    # The fastest and crispest: a rod of learned spheres, height maps in closed form.
+    # The default: a rod of learned spheres, height maps in closed form (docs/experiments.md).
     "cpu_spheres": TrainConfig(model=ModelConfig(nf=32, latent_dim=16, composite="zbuffer",
                                                  renderer="spheres", spectral_norm=True,
                                                  radius_profile="monotone"),
                                batch_size=32, lambda_real=1.0, real_trains_generator=True,
                                r1_gamma=10.0, lr_template=0.003, recon_levels=4,
                                compactness=5.0),
+    # The learned renderer, instances rendered alone and z-buffered in training as at test
+    # time, and the encoder also fitted to real frames through the frozen generator.
     "cpu": TrainConfig(model=ModelConfig(nf=32, latent_dim=16, composite="zbuffer",
                                          render_bias=-2.5),
                        batch_size=32, lambda_real=1.0),
@@ -192,7 +193,7 @@ def weights_checksum(run: Run) -> str:
 def make_run(cfg: TrainConfig, device: str) -> Run:
     G, D, E = build(cfg.model)
     G, D, E = G.to(device), D.to(device), E.to(device)
-    explicit = ("occupancy", "log_radius", "radius_shape", "length", "lift")
+    explicit = G.template_parameters
     template = [p for name, p in G.named_parameters() if name in explicit]
     rest = [p for name, p in G.named_parameters() if name not in explicit]
     groups = [{"params": rest}]
@@ -285,8 +286,9 @@ def train_step(run: Run, real: torch.Tensor, amp: bool = False) -> dict:
         run.opt_g.zero_grad(set_to_none=True)
         (cfg.lambda_real * l_r).backward()
         if not cfg.real_trains_template:  # the template learns from the GAN alone
-            for p in run.opt_g.param_groups[1]["params"] if len(run.opt_g.param_groups) > 1 else []:
-                p.grad = None  # Adam skips parameters without a gradient
+            for group in run.opt_g.param_groups[1:]:  # the template's group, if there is one
+                for p in group["params"]:
+                    p.grad = None  # Adam skips parameters without a gradient
         run.opt_e.step()
         run.opt_g.step()
     return {"loss_d": loss_d.item(), "loss_g": loss_g.item(), "l_a": l_a.item(),

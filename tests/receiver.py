@@ -33,10 +33,14 @@ def main():
     t0 = time.monotonic()
     while len(depth) < count and time.monotonic() - t0 < timeout:
         rclpy.spin_once(node, timeout_sec=0.05)
-    end = time.monotonic() + 0.3  # labels/info of the last frame
+    frames = depth[:count]
+    # the labels / camera info of those frames travel on their own topics and may come later
+    # than the depth on a loaded machine: wait for them (up to 3 s) rather than a fixed time
+    end = time.monotonic() + 3.0
     while time.monotonic() < end:
         rclpy.spin_once(node, timeout_sec=0.05)
-    frames = depth[:count]
+        if all(key(m) in infos and (not labels or key(m) in labels) for m in frames):
+            break
 
     def raw(m):
         dt = {"16UC1": "<u2", "32FC1": "<f4", "mono8": "u1"}[m.encoding]

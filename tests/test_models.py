@@ -9,7 +9,6 @@ import functools
 import json
 from pathlib import Path
 
-import numpy as np
 import pytest
 from conftest import BAGS, REPO
 

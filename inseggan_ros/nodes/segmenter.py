@@ -20,6 +20,7 @@ stops the node at start-up with one clear error line.
 """
 from __future__ import annotations
 
+import copy
 import math
 import sys
 import time
@@ -132,7 +133,7 @@ class Segmenter(Node):
         self.pub_overlay = self.create_publisher(Image, "~/overlay", 5)
         self.pub_recon = self.create_publisher(Image, "~/reconstruction", 5)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        qos = qos_profile_sensor_data
+        qos = copy.copy(qos_profile_sensor_data)  # rclpy's profile is shared: change a copy
         qos.history, qos.depth = QoSHistoryPolicy.KEEP_LAST, 1
         self.sub = self.create_subscription(Image, "depth", self._on_depth, qos)
 
