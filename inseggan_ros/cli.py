@@ -142,7 +142,8 @@ def cmd_train(args) -> int:
                      renderer=args.renderer, lr_template=args.lr_template,
                      compactness=args.compactness, coord_conv=args.coord_conv or None,
                      recon_levels=args.recon_levels, background_weight=args.background_weight,
-                     real_trains_template=False if args.template_from_gan else None)
+                     real_trains_template=False if args.template_from_gan else None,
+                     floor_contact=args.floor_contact or None)
     train_data, val_data, prep, info = _load_training_data(args)
     if val_data.get("labels") is None:
         print("no labels in the validation frames: validation uses the reconstruction error")
@@ -345,6 +346,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--compactness", type=float, help="weight of the template compactness prior")
     p.add_argument("--coord-conv", action="store_true", help="encoder sees pixel coordinates")
     p.add_argument("--recon-levels", type=int, help="pyramid levels of the re-render losses")
+    p.add_argument("--floor-contact", action="store_true",
+                   help="sphere rods: an instance reaching below the floor is lifted onto it")
     p.add_argument("--template-from-gan", action="store_true",
                    help="the real-frame loss trains the poses, not the explicit template")
     p.add_argument("--background-weight", type=float,

@@ -95,14 +95,15 @@ def r1_penalty(real_logits: torch.Tensor, real: torch.Tensor) -> torch.Tensor:
 
 
 def pyramid_l1(a: torch.Tensor, b: torch.Tensor, levels: int = 1,
-               background_weight: float = 1.0) -> torch.Tensor:
+               background_weight: float = 1.0, per_frame: bool = False) -> torch.Tensor:
     """Mean L1 over an image pyramid (2x2 average pooling between levels); levels=1 is plain L1.
 
     The coarse levels see a misplaced object and its target overlap where the fine level does
     not, so a render far from its object still gets pulled towards it. `background_weight`
     weighs the pixels where the target `b` is floor (-1): above 1, drawing an object where there
     is none costs more than missing one, so that an explicit template does not grow to cover
-    the objects an imprecise encoder misses."""
+    the objects an imprecise encoder misses. `per_frame`: one loss per frame, (B,), instead of
+    their mean."""
     w = None
     if background_weight != 1.0:
         w = torch.where(b <= -1 + 1e-4, background_weight, 1.0)
@@ -111,6 +112,6 @@ def pyramid_l1(a: torch.Tensor, b: torch.Tensor, levels: int = 1,
         if level:
             a, b = F.avg_pool2d(a, 2), F.avg_pool2d(b, 2)
             w = F.avg_pool2d(w, 2) if w is not None else None
-        err = (a - b).abs()
-        loss = loss + (err.mean() if w is None else (w * err).mean())
+        err = (a - b).abs() if w is None else w * (a - b).abs()
+        loss = loss + (err.flatten(1).mean(1) if per_frame else err.mean())
     return loss / levels

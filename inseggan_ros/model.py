@@ -51,6 +51,8 @@ class ModelConfig:
     # "monotone" (each at most 25 % smaller than the one before: cylinders, cones, bolts; no
     # dumbbells)
     height_gain: float = 1.8  # bin-crop width / max_height: template z units -> image heights
+    floor_contact: bool = False  # "spheres": an instance reaching below the floor is lifted
+    # until its lowest point touches it (objects lie on the floor or on each other)
 
     def __post_init__(self):
         if self.image_size != 64:
@@ -345,17 +347,21 @@ class SphereGenerator(Generator):
         B, n, d = z.shape
         return self.render_poses(self.pose(z.reshape(B * n, d)).reshape(B, n, 6), size)
 
-    def render_poses(self, pose: torch.Tensor, size: int | None = None) -> torch.Tensor:
+    def render_poses(self, pose: torch.Tensor, size: int | None = None,
+                     template: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
         """(B, n, 6) poses (axis-angle rotation, translation: what the pose decoder outputs)
-        -> (B, n, size, size) single-instance renders."""
+        -> (B, n, size, size) single-instance renders. `template`: `spheres()` computed
+        beforehand (test-time refinement, where the template does not change)."""
         B, n = pose.shape[:2]
         p = pose.reshape(B * n, 6)
         theta = pose_matrix(p)  # (M, 3, 4)
-        centres, radii = self.spheres()
+        centres, radii = self.spheres() if template is None else template
         c = centres @ theta[:, :, :3].transpose(1, 2) + theta[:, None, :, 3]  # (M, K, 3)
         r = radii.view(1, -1, 1, 1)
-        cx, cy = c[..., 0, None, None], c[..., 1, None, None]
-        cz = c[..., 2, None, None] + self.lift
+        cz = c[..., 2] + self.lift  # (M, K)
+        if self.cfg.floor_contact:  # lowest point of the instance at or above the floor
+            cz = cz + (radii - cz).amax(dim=1, keepdim=True).clamp_min(0)
+        cx, cy, cz = c[..., 0, None, None], c[..., 1, None, None], cz[..., None, None]
         px, py = self.px, self.py
         if size is not None and size != self.cfg.image_size:
             g = (torch.arange(size, device=pose.device, dtype=px.dtype) + 0.5) / size * 2 - 1

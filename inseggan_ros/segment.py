@@ -102,28 +102,53 @@ def _reseed(G, pose: torch.Tensor, target: torch.Tensor, min_pixels: int) -> tor
     return pose
 
 
+# How far the extra starting points of multi-start refinement lie from the encoder's poses:
+# axis-angle (radians) and translation (x, y, height; image half-widths).
+HYPOTHESIS_JITTER = (0.6, 0.6, 0.6, 0.12, 0.12, 0.05)
+
+
 def refine_poses(G, z: torch.Tensor, x: torch.Tensor, steps: int, reseeds: int = 2,
-                 size: int = 32, lr: float = 0.03) -> torch.Tensor:
+                 size: int = 32, lr: float = 0.03, hypotheses: int = 1) -> torch.Tensor:
     """Analysis by synthesis at test time, on the poses themselves (generators with explicit
     templates): from the encoder's codes, `steps` Adam steps in all on the n poses of each frame
     so that the z-buffered composite matches the input (pyramid L1 at size x size), in
     `reseeds` + 1 rounds; between rounds the least visible instance is moved onto the largest
-    unexplained part of the input (`_reseed`). -> (B, n, 6) poses."""
+    unexplained part of the input (`_reseed`).
+
+    `hypotheses` > 1: multi-start. Besides the encoder's poses, hypotheses - 1 copies jittered
+    by HYPOTHESIS_JITTER (a fixed random draw: deterministic) are refined alongside, in the same
+    batch, and each frame keeps the one that matches its input best. On one frame a step costs
+    little more for 4 hypotheses than for 1 (the work is per operation, not per pixel).
+    -> (B, n, 6) poses."""
     from .losses import pyramid_l1
 
+    if hypotheses < 1:
+        raise ValueError(f"hypotheses must be >= 1, got {hypotheses}")
     B, n, d = z.shape
+    H = int(hypotheses)
     with torch.no_grad():
         pose = G.pose(z.reshape(B * n, d)).reshape(B, n, 6)
+        template = G.spheres()  # fixed while the poses move: computed once
     target = F.adaptive_avg_pool2d(x, size)
+    if H > 1:
+        gen = torch.Generator().manual_seed(0)
+        jitter = torch.randn(B, H - 1, n, 6, generator=gen) * torch.tensor(HYPOTHESIS_JITTER)
+        pose = torch.cat([pose[:, None], pose[:, None] + jitter.to(pose)], 1).reshape(B * H, n, 6)
+        target = target.repeat_interleave(H, dim=0)
     rounds = reseeds + 1 if steps >= 2 * (reseeds + 1) else 1
 
-    def loss_of(p):
-        return pyramid_l1(G.zbuffer(G.render_poses(p, size)), target, 3) * B
+    def loss_of(p, per_frame=False):
+        return pyramid_l1(G.zbuffer(G.render_poses(p, size, template)), target, 3,
+                          per_frame=per_frame) * (1 if per_frame else len(p))
 
     for r in range(rounds):
         pose = _adam_fit(pose, loss_of, steps // rounds + (steps % rounds if r == rounds - 1 else 0), lr)
         if r < rounds - 1:
             pose = _reseed(G, pose.detach(), target, min_pixels=max(4, size * size // 150))
+    if H > 1:
+        with torch.no_grad():
+            best = loss_of(pose, per_frame=True).reshape(B, H).argmin(1)
+        pose = pose.reshape(B, H, n, 6)[torch.arange(B), best]
     return pose.detach()
 
 

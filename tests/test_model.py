@@ -211,3 +211,69 @@ def test_monotone_rod_profile_cannot_become_a_dumbbell():
             assert (r[1:] <= r[:-1] + 1e-7).all() and (r[1:] >= 0.75 * r[:-1] - 1e-7).all()
     with pytest.raises(ValueError, match="radius_profile"):
         ModelConfig(renderer="spheres", composite="zbuffer", radius_profile="wavy")
+
+
+def test_pyramid_l1_per_frame_averages_to_the_batch_loss():
+    a, b = torch.randn(3, 1, 16, 16), torch.randn(3, 1, 16, 16)
+    per = losses.pyramid_l1(a, b, 3, per_frame=True)
+    assert per.shape == (3,)
+    assert per.mean().item() == pytest.approx(losses.pyramid_l1(a, b, 3).item(), rel=1e-6)
+    assert per[1].item() == pytest.approx(losses.pyramid_l1(a[1:2], b[1:2], 3).item(), rel=1e-6)
+
+
+def test_floor_contact_lifts_a_sunken_rod_onto_the_floor():
+    """With floor_contact a rod posed below the floor renders as the same rod lying on it (its
+    lowest point at height 0); without it, it sinks out of sight."""
+    from inseggan_ros.model import SphereGenerator
+
+    def rod(floor_contact):
+        G = SphereGenerator(ModelConfig(renderer="spheres", composite="zbuffer", spheres=4,
+                                        floor_contact=floor_contact, **SMALL))
+        with torch.no_grad():
+            G.lift.fill_(0.0)
+            G.radius_shape.fill_(50.0)  # all radii equal
+            G.log_radius.fill_(math.log(0.2))
+            G.length.fill_(0.4)
+        return G
+
+    on_floor = torch.tensor([[[0.0, 0.0, 0.0, 0.0, 0.0, 0.2]]])  # axis at height r: resting
+    sunk = torch.tensor([[[0.0, 0.0, 0.0, 0.0, 0.0, -0.5]]])
+    G = rod(True)
+    with torch.no_grad():
+        resting = G.render_poses(on_floor)
+        assert torch.allclose(G.render_poses(sunk), resting)
+        top = (resting.max() + 1) / 2 / (G.cfg.height_gain / 2)
+        assert float(top) == pytest.approx(0.4, abs=0.025)  # 2 r (soft coverage: a bit less)
+        floating = torch.tensor([[[0.0, 0.0, 0.0, 0.0, 0.0, 0.5]]])
+        assert G.render_poses(floating).max() > resting.max()  # above the floor: unchanged
+        assert (rod(False).render_poses(sunk) == -1).all()  # without: sunk out of sight
+
+
+def test_multi_start_refinement_never_fits_worse_than_one_start():
+    """Hypothesis 0 follows exactly the single-start trajectory (Adam is per element, the loss a
+    sum over frames), so the best of several fits each frame at least as well; it is
+    deterministic."""
+    from inseggan_ros.model import make_generator
+    from inseggan_ros.segment import refine_poses
+
+    torch.manual_seed(0)
+    cfg = ModelConfig(renderer="spheres", composite="zbuffer", spheres=4, **SMALL)
+    G = make_generator(cfg).eval()
+    for p in G.parameters():
+        p.requires_grad_(False)
+    with torch.no_grad():
+        x = G.zbuffer(G.render_instances(torch.randn(4, 3, 16)))  # frames the model can draw
+    z = torch.randn(4, 3, 16)  # a wrong first guess
+
+    def fit(pose):
+        return losses.pyramid_l1(G.zbuffer(G.render_poses(pose, 32)),
+                                 F.adaptive_avg_pool2d(x, 32), 3, per_frame=True)
+
+    one = fit(refine_poses(G, z, x, 12, lr=0.06))
+    multi_pose = refine_poses(G, z, x, 12, lr=0.06, hypotheses=4)
+    multi = fit(multi_pose)
+    assert (multi <= one + 1e-6).all()
+    assert multi.sum() < one.sum()  # and here some frame did better
+    assert torch.equal(multi_pose, refine_poses(G, z, x, 12, lr=0.06, hypotheses=4))
+    with pytest.raises(ValueError, match="hypotheses"):
+        refine_poses(G, z, x, 12, hypotheses=0)
