@@ -47,7 +47,7 @@ def simulated_frames(count: int, width: int, height: int) -> list[np.ndarray]:
 
 
 def in_process_reference(frames, model_path: str, refine_steps: int | None = None,
-                         repeats: int = 3) -> dict:
+                         hypotheses: int | None = None, repeats: int = 3) -> dict:
     """Inference alone and conversion alone, in this process (one thread), for comparison."""
     from dataclasses import replace
 
@@ -69,7 +69,8 @@ def in_process_reference(frames, model_path: str, refine_steps: int | None = Non
             t0 = time.perf_counter()
             depth = conversions.depth_to_metres(msg)
             t1 = time.perf_counter()
-            out = seg(depth, prep, reconstruction=False, refine_steps=refine_steps)
+            out = seg(depth, prep, reconstruction=False, refine_steps=refine_steps,
+                      hypotheses=hypotheses)
             t2 = time.perf_counter()
             conversions.numpy_to_image(out.labels, "mono8", msg.header)
             t3 = time.perf_counter()
@@ -87,6 +88,8 @@ def main(argv=None) -> int:
     ap.add_argument("--model", default="", help="segmenter model_path ('' = shipped default)")
     ap.add_argument("--distinct-frames", type=int, default=8)
     ap.add_argument("--refine-steps", type=int, help="segmenter refine_steps (default: the model's)")
+    ap.add_argument("--hypotheses", type=int,
+                    help="segmenter refine_hypotheses (default: the model's)")
     args = ap.parse_args(argv)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
@@ -105,7 +108,7 @@ def main(argv=None) -> int:
 
     frames = simulated_frames(args.distinct_frames, args.width, args.height)
     try:
-        ref = in_process_reference(frames, args.model, args.refine_steps)
+        ref = in_process_reference(frames, args.model, args.refine_steps, args.hypotheses)
     except (CheckpointError, ConfigError) as e:
         print(f"bench-node: error: {e}", file=sys.stderr)
         return 2
@@ -122,6 +125,8 @@ def main(argv=None) -> int:
     model = ["-p", f"model_path:={args.model}"] if args.model else []
     if args.refine_steps is not None:
         model += ["-p", f"refine_steps:={args.refine_steps}"]
+    if args.hypotheses is not None:
+        model += ["-p", f"refine_hypotheses:={args.hypotheses}"]
     seg = subprocess.Popen([_executable("segmenter"), "--ros-args", *model,
                             "-p", "latency_window:=100000",
                             "-r", "depth:=camera/depth/image_rect_raw"],

@@ -81,9 +81,11 @@ def load_for_inference(path, device: str = "auto", tau: float | None = None):
         prep = PreprocessConfig.from_dict(state["preprocess_config"])
     except (KeyError, TypeError, ValueError) as e:
         raise CheckpointError(f"{path}: bad preprocessing config ({e})") from None
+    inference = state.get("inference", {})
     return Segmenter(G, E, cfg, prep, float(state.get("tau", -0.5) if tau is None else tau),
                      device=pick_device(device),
-                     refine_steps=int(state.get("inference", {}).get("refine_steps", 0)))
+                     refine_steps=int(inference.get("refine_steps", 0)),
+                     hypotheses=int(inference.get("hypotheses", 1)))
 
 
 def export_for_inference(src, dst, half: bool = False) -> Path:

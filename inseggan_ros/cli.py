@@ -193,11 +193,12 @@ def cmd_export(args) -> int:
     from .modelcard import export_model
 
     card = export_model(args.checkpoint, args.data, args.name, args.out or Path("models") / args.name,
-                        refine_steps=args.refine_steps, half=not args.no_half,
+                        refine_steps=args.refine_steps, hypotheses=args.hypotheses,
+                        half=not args.no_half,
                         frames=args.frames, notes=args.config_name or "",
                         sample_bag=args.sample_bag, also_refine=args.also_refine)
     print(f"exported {args.name}: tau {card['tau']:.3f}, {card['precision']}, refine steps "
-          f"{card['refine_steps']}; test split:")
+          f"{card['refine_steps']} x {card['hypotheses']} hypotheses; test split:")
     print(format_table(card["test"]))
     return 0
 
@@ -297,6 +298,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--name", required=True)
     p.add_argument("--out", type=Path, help="default: models/<name>")
     p.add_argument("--refine-steps", type=int, default=0, help="test-time refinement steps")
+    p.add_argument("--hypotheses", type=int, default=1,
+                   help="starting points of test-time refinement (multi-start, default 1)")
     p.add_argument("--no-half", action="store_true", help="keep float32 weights")
     p.add_argument("--frames", type=int, default=200)
     p.add_argument("--config-name", help="the named training config, for the card")

@@ -33,7 +33,7 @@ def _val_miou(seg, val: dict) -> float:
 
 
 def export_model(checkpoint_path, data_root, name: str, out_dir, refine_steps: int = 0,
-                 half: bool = True, frames: int = 200, notes: str = "",
+                 hypotheses: int = 1, half: bool = True, frames: int = 200, notes: str = "",
                  sample_bag: str | None = None, also_refine: int | None = None) -> dict:
     import torch
 
@@ -44,13 +44,14 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, refine_steps: i
 
     state = ckpt.load(checkpoint_path)
     seg = ckpt.load_for_inference(checkpoint_path, device="cpu")
-    seg.refine_steps = refine_steps
+    seg.refine_steps, seg.hypotheses = refine_steps, hypotheses
     val = data_mod.load_sim_split(data_root, "val", seg.prep_cfg, limit=frames)
     test = data_mod.load_sim_split(data_root, "test", seg.prep_cfg, limit=frames)
 
     # 1. tau with the shipped inference settings
     x = torch.from_numpy(val["x"])
-    renders = torch.cat([infer(seg.G, seg.E, x[i:i + 50], refine_steps=refine_steps)["renders"]
+    renders = torch.cat([infer(seg.G, seg.E, x[i:i + 50], refine_steps=refine_steps,
+                               hypotheses=hypotheses)["renders"]
                          for i in range(0, len(x), 50)])
     tau, scores = calibrate_tau(renders, torch.from_numpy(val["fg"]), val["labels"])
     seg.tau = tau
@@ -59,7 +60,7 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, refine_steps: i
     # 2. half precision only if it costs nothing measurable
     keep = {k: v for k, v in state.items() if k not in ("discriminator", "optimizers", "rng", "format")}
     keep["tau"] = tau
-    keep["inference"] = {"refine_steps": int(refine_steps)}
+    keep["inference"] = {"refine_steps": int(refine_steps), "hypotheses": int(hypotheses)}
     precision, val_half = "float32", None
     if half:
         G16 = {k: v.half().float() if v.is_floating_point() else v for k, v in keep["generator"].items()}
@@ -101,7 +102,8 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, refine_steps: i
         "train_config": tcfg, "iterations": state["iteration"],
         "wall_minutes": round(state["elapsed_seconds"] / 60, 1),
         "hardware": f"{platform.machine()} CPU, {os.cpu_count()} cores (torch threads: 1)",
-        "tau": tau, "refine_steps": int(refine_steps), "precision": precision,
+        "tau": tau, "refine_steps": int(refine_steps), "hypotheses": int(hypotheses),
+        "precision": precision,
         "sample_bag": sample_bag, "sample_bag_scores": bag_scores,
         "val_miou": {"float32": val_full, "float16": val_half},
         "test": summary,
@@ -166,7 +168,8 @@ def card_markdown(card: dict) -> str:
         f"* **Training:** {card['iterations']} iterations, {card['wall_minutes']} min wall time, "
         f"{card['hardware']}, batch {card['train_config']['batch_size']}",
         f"* **Inference:** tau {card['tau']:.3f} (calibrated on the 200 validation scenes), "
-        f"{card['refine_steps']} test-time refinement steps, weights in {card['precision']} "
+        f"{card['refine_steps']} test-time refinement steps from {card.get('hypotheses', 1)} "
+        f"starting point(s), weights in {card['precision']} "
         f"(validation mIoU float32 {card['val_miou']['float32']:.4f}"
         + (f", float16 {card['val_miou']['float16']:.4f}" if card['val_miou']['float16'] is not None else "")
         + ")", "",

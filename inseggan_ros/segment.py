@@ -108,7 +108,7 @@ HYPOTHESIS_JITTER = (0.6, 0.6, 0.6, 0.12, 0.12, 0.05)
 
 
 def refine_poses(G, z: torch.Tensor, x: torch.Tensor, steps: int, reseeds: int = 2,
-                 size: int = 32, lr: float = 0.03, hypotheses: int = 1) -> torch.Tensor:
+                 size: int = 32, lr: float = 0.06, hypotheses: int = 1) -> torch.Tensor:
     """Analysis by synthesis at test time, on the poses themselves (generators with explicit
     templates): from the encoder's codes, `steps` Adam steps in all on the n poses of each frame
     so that the z-buffered composite matches the input (pyramid L1 at size x size), in
@@ -153,15 +153,17 @@ def refine_poses(G, z: torch.Tensor, x: torch.Tensor, steps: int, reseeds: int =
 
 
 @torch.no_grad()
-def infer(G, E, x: torch.Tensor, filtered: bool | None = None, refine_steps: int = 0) -> dict:
+def infer(G, E, x: torch.Tensor, filtered: bool | None = None, refine_steps: int = 0,
+          hypotheses: int = 1) -> dict:
     """(B, 1, 64, 64) inputs -> codes, single-instance renders (B, n, 64, 64), reconstruction.
 
     `filtered` (default: for the learned renderer only, whose renders are noisy; the explicit
     templates render clean edges that a blur would only soften) median- and Gauss-filters
-    every render, as the reference code does."""
+    every render, as the reference code does. `refine_steps`, `hypotheses`: test-time
+    refinement (`refine_poses`, or `refine` on the codes for the learned renderer)."""
     z = E(x)
     if refine_steps > 0 and hasattr(G, "render_poses"):
-        pose = refine_poses(G, z, x, refine_steps)
+        pose = refine_poses(G, z, x, refine_steps, hypotheses=hypotheses)
         renders = G.render_poses(pose)
         return {"z": z, "pose": pose, "renders": renders,
                 "reconstruction": G.zbuffer(renders)}
@@ -262,12 +264,12 @@ class Segmenter:
     """A trained model + its preprocessing + tau: depth frames in, segmentations out."""
 
     def __init__(self, G, E, model_cfg, prep_cfg, tau: float, device: str = "cpu",
-                 refine_steps: int = 0):
+                 refine_steps: int = 0, hypotheses: int = 1):
         self.G, self.E = G.eval().to(device), E.eval().to(device)
         for p in self.G.parameters():  # test-time refinement optimises codes, never weights
             p.requires_grad_(False)
         self.model_cfg, self.prep_cfg, self.tau, self.device = model_cfg, prep_cfg, tau, device
-        self.refine_steps = int(refine_steps)
+        self.refine_steps, self.hypotheses = int(refine_steps), int(hypotheses)
 
     @staticmethod
     def from_checkpoint(path, device: str = "auto", tau: float | None = None) -> "Segmenter":
@@ -277,12 +279,13 @@ class Segmenter:
 
     @torch.no_grad()
     def segment_batch(self, x: np.ndarray | torch.Tensor, fg=None, tau: float | None = None,
-                      refine_steps: int | None = None) -> dict:
+                      refine_steps: int | None = None, hypotheses: int | None = None) -> dict:
         """(B, 1, 64, 64) prepared inputs -> labels (B, 64, 64) uint8, renders, scores, recon."""
         tau = self.tau if tau is None else float(tau)
         steps = self.refine_steps if refine_steps is None else int(refine_steps)
+        hyp = self.hypotheses if hypotheses is None else int(hypotheses)
         x = torch.as_tensor(x, dtype=torch.float32, device=self.device)
-        out = infer(self.G, self.E, x, refine_steps=steps)
+        out = infer(self.G, self.E, x, refine_steps=steps, hypotheses=hyp)
         fg_t = (x[:, 0] > -1 + 1e-4) if fg is None else torch.as_tensor(fg, device=self.device)
         labels = labels_from_renders(out["renders"], tau, fg_t)
         out["labels"] = labels
@@ -290,12 +293,14 @@ class Segmenter:
         return out
 
     def __call__(self, depth_m: np.ndarray, prep_cfg=None, tau: float | None = None,
-                 reconstruction: bool = True, refine_steps: int | None = None) -> Segmentation:
+                 reconstruction: bool = True, refine_steps: int | None = None,
+                 hypotheses: int | None = None) -> Segmentation:
         """One depth frame (H, W) in metres -> Segmentation at the input's resolution.
 
         `prep_cfg` overrides the model's preprocessing (bin region, floor, min_height: the
         node's parameters); `tau` the calibrated threshold; `reconstruction=False` skips the
-        metric re-rendered depth. Raises ValueError on a bad frame."""
+        metric re-rendered depth; `refine_steps` / `hypotheses` the model's test-time refinement.
+        Raises ValueError on a bad frame."""
         from .preprocess import labels_to_full, prepare
 
         prep_cfg = self.prep_cfg if prep_cfg is None else prep_cfg
@@ -304,7 +309,7 @@ class Segmenter:
                              f"{self.prep_cfg.max_height} m, {self.prep_cfg.size} px")
         prep = prepare(depth_m, prep_cfg)
         out = self.segment_batch(prep.x[None, None], fg=prep.fg[None], tau=tau,
-                                 refine_steps=refine_steps)
+                                 refine_steps=refine_steps, hypotheses=hypotheses)
         labels64 = out["labels"][0].cpu().numpy()
         labels = labels_to_full(labels64, prep)
         recon = None

@@ -196,7 +196,7 @@ class Segmenter(Node):
     def _declare_runtime(self) -> None:
         d, prep = self._descriptor, self.model.prep_cfg
         self._runtime_names = ["roi", "bin_polygon", "floor_depth", "min_height", "tau",
-                               "refine_steps",
+                               "refine_steps", "refine_hypotheses",
                                "publish_masks", "publish_overlay", "publish_reconstruction",
                                "resolution_change_frames"]
         self._declare({
@@ -217,6 +217,9 @@ class Segmenter(Node):
             "refine_steps": (int(self.model.refine_steps), d(
                 "test-time refinement steps of the poses per frame (default: the model's; each "
                 "step costs about 1-2 ms on one CPU thread)", int_range=(0, 500))),
+            "refine_hypotheses": (int(self.model.hypotheses), d(
+                "starting points refined side by side, the best-fitting kept (default: the "
+                "model's; 4 cost about 2.5x the time of 1)", int_range=(1, 32))),
             "publish_masks": (True, d("publish ~/masks")),
             "publish_overlay": (True, d("publish ~/overlay (computed only when subscribed)")),
             "publish_reconstruction": (True, d("publish ~/reconstruction (only when "
@@ -310,7 +313,8 @@ class Segmenter(Node):
                 self.pub_recon.get_subscription_count() > 0
             try:
                 seg = self.model(depth, self._prep_for(depth), tau=self.p["tau"],
-                                 reconstruction=want_recon, refine_steps=self.p["refine_steps"])
+                                 reconstruction=want_recon, refine_steps=self.p["refine_steps"],
+                                 hypotheses=self.p["refine_hypotheses"])
             except ValueError as e:
                 raise FrameError("depth", str(e)) from None
             t2 = time.perf_counter()
