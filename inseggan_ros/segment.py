@@ -102,39 +102,71 @@ def _reseed(G, pose: torch.Tensor, target: torch.Tensor, min_pixels: int) -> tor
     return pose
 
 
-# How far the extra starting points of multi-start refinement lie from the encoder's poses:
+# How far the jittered starting points of multi-start refinement lie from the encoder's poses:
 # axis-angle (radians) and translation (x, y, height; image half-widths).
 HYPOTHESIS_JITTER = (0.6, 0.6, 0.6, 0.12, 0.12, 0.05)
+MIRRORS = ((False, False), (True, False), (False, True), (True, True))  # (flip x, flip y)
 
 
-def refine_poses(G, z: torch.Tensor, x: torch.Tensor, steps: int, reseeds: int = 2,
-                 size: int = 32, lr: float = 0.06, hypotheses: int = 1) -> torch.Tensor:
-    """Analysis by synthesis at test time, on the poses themselves (generators with explicit
-    templates): from the encoder's codes, `steps` Adam steps in all on the n poses of each frame
-    so that the z-buffered composite matches the input (pyramid L1 at size x size), in
-    `reseeds` + 1 rounds; between rounds the least visible instance is moved onto the largest
-    unexplained part of the input (`_reseed`).
+def _mirror_poses(pose: torch.Tensor, flip_x: bool, flip_y: bool) -> torch.Tensor:
+    """Poses estimated on a mirrored image -> poses in the original image. A reflection F maps
+    a rotation R(w) to F R F = R(-F w) and a translation t to F t. (The template itself is
+    mirrored too, which matters only for asymmetric templates: these are starting points.)"""
+    pose = pose.clone()
+    for flip, axis in ((flip_x, 0), (flip_y, 1)):
+        if flip:
+            pose[..., 3 + axis] *= -1
+            pose[..., [a for a in range(3) if a != axis]] *= -1
+    return pose
 
-    `hypotheses` > 1: multi-start. Besides the encoder's poses, hypotheses - 1 copies jittered
-    by HYPOTHESIS_JITTER (a fixed random draw: deterministic) are refined alongside, in the same
-    batch, and each frame keeps the one that matches its input best. On one frame a step costs
-    little more for 4 hypotheses than for 1 (the work is per operation, not per pixel).
-    -> (B, n, 6) poses."""
-    from .losses import pyramid_l1
 
+@torch.no_grad()
+def start_poses(G, E, x: torch.Tensor, hypotheses: int = 1) -> torch.Tensor:
+    """(B, 1, 64, 64) inputs -> (B, H, n, 6) starting poses for `refine_poses`.
+
+    Hypothesis 0 is the encoder's estimate. The next (up to 3) are its estimates on the
+    mirrored input (left-right, up-down, both), mapped back: test-time augmentation that gives
+    genuinely different guesses. Any more are the earlier ones jittered by HYPOTHESIS_JITTER (a
+    fixed random draw: deterministic). Measured on 100 cylinder validation frames, 30 steps:
+    mIoU 0.742 with 4 jittered starts, 0.754 with the 4 mirrors, 0.764 with 8 (docs)."""
     if hypotheses < 1:
         raise ValueError(f"hypotheses must be >= 1, got {hypotheses}")
-    B, n, d = z.shape
-    H = int(hypotheses)
-    with torch.no_grad():
-        pose = G.pose(z.reshape(B * n, d)).reshape(B, n, 6)
-        template = G.spheres()  # fixed while the poses move: computed once
-    target = F.adaptive_avg_pool2d(x, size)
-    if H > 1:
+    B = len(x)
+    starts = []
+    for flip_x, flip_y in MIRRORS[:hypotheses]:
+        dims = [d for d, f in ((3, flip_x), (2, flip_y)) if f]
+        z = E(torch.flip(x, dims) if dims else x)
+        pose = G.pose(z.reshape(-1, z.shape[-1])).reshape(B, z.shape[1], 6)
+        starts.append(_mirror_poses(pose, flip_x, flip_y))
+    pose = torch.stack(starts, 1)
+    extra = hypotheses - len(starts)
+    if extra > 0:
         gen = torch.Generator().manual_seed(0)
-        jitter = torch.randn(B, H - 1, n, 6, generator=gen) * torch.tensor(HYPOTHESIS_JITTER)
-        pose = torch.cat([pose[:, None], pose[:, None] + jitter.to(pose)], 1).reshape(B * H, n, 6)
-        target = target.repeat_interleave(H, dim=0)
+        base = pose[:, torch.arange(extra) % len(starts)]
+        jitter = torch.randn(base.shape, generator=gen) * torch.tensor(HYPOTHESIS_JITTER)
+        pose = torch.cat([pose, base + jitter.to(pose)], 1)
+    return pose
+
+
+def refine_poses(G, pose: torch.Tensor, x: torch.Tensor, steps: int, reseeds: int = 2,
+                 size: int = 32, lr: float = 0.06) -> torch.Tensor:
+    """Analysis by synthesis at test time, on the poses themselves (generators with explicit
+    templates): `steps` Adam steps in all on the n poses of each frame so that the z-buffered
+    composite matches the input (pyramid L1 at size x size), in `reseeds` + 1 rounds; between
+    rounds the least visible instance is moved onto the largest unexplained part of the input
+    (`_reseed`).
+
+    `pose`: (B, H, n, 6) starting points (`start_poses`), refined side by side in one batch;
+    each frame keeps the one that fits its input best (multi-start). Hypothesis 0 follows
+    exactly the path it would follow alone (Adam is per element, the loss a sum over frames),
+    so more hypotheses never fit worse. -> (B, n, 6) poses."""
+    from .losses import pyramid_l1
+
+    B, H, n, _ = pose.shape
+    pose = pose.reshape(B * H, n, 6)
+    with torch.no_grad():
+        template = G.spheres()  # fixed while the poses move: computed once
+    target = F.adaptive_avg_pool2d(x, size).repeat_interleave(H, dim=0)
     rounds = reseeds + 1 if steps >= 2 * (reseeds + 1) else 1
 
     def loss_of(p, per_frame=False):
@@ -148,7 +180,7 @@ def refine_poses(G, z: torch.Tensor, x: torch.Tensor, steps: int, reseeds: int =
     if H > 1:
         with torch.no_grad():
             best = loss_of(pose, per_frame=True).reshape(B, H).argmin(1)
-        pose = pose.reshape(B, H, n, 6)[torch.arange(B), best]
+        return pose.reshape(B, H, n, 6)[torch.arange(B), best].detach()
     return pose.detach()
 
 
@@ -163,7 +195,7 @@ def infer(G, E, x: torch.Tensor, filtered: bool | None = None, refine_steps: int
     refinement (`refine_poses`, or `refine` on the codes for the learned renderer)."""
     z = E(x)
     if refine_steps > 0 and hasattr(G, "render_poses"):
-        pose = refine_poses(G, z, x, refine_steps, hypotheses=hypotheses)
+        pose = refine_poses(G, start_poses(G, E, x, hypotheses), x, refine_steps)
         renders = G.render_poses(pose)
         return {"z": z, "pose": pose, "renders": renders,
                 "reconstruction": G.zbuffer(renders)}

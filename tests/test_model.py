@@ -254,26 +254,46 @@ def test_multi_start_refinement_never_fits_worse_than_one_start():
     sum over frames), so the best of several fits each frame at least as well; it is
     deterministic."""
     from inseggan_ros.model import make_generator
-    from inseggan_ros.segment import refine_poses
+    from inseggan_ros.segment import refine_poses, start_poses
 
     torch.manual_seed(0)
     cfg = ModelConfig(renderer="spheres", composite="zbuffer", spheres=4, **SMALL)
-    G = make_generator(cfg).eval()
+    G, E = make_generator(cfg).eval(), Encoder(cfg).eval()  # E untrained: wrong first guesses
     for p in G.parameters():
         p.requires_grad_(False)
     with torch.no_grad():
         x = G.zbuffer(G.render_instances(torch.randn(4, 3, 16)))  # frames the model can draw
-    z = torch.randn(4, 3, 16)  # a wrong first guess
 
     def fit(pose):
         return losses.pyramid_l1(G.zbuffer(G.render_poses(pose, 32)),
                                  F.adaptive_avg_pool2d(x, 32), 3, per_frame=True)
 
-    one = fit(refine_poses(G, z, x, 12, lr=0.06))
-    multi_pose = refine_poses(G, z, x, 12, lr=0.06, hypotheses=4)
+    one = fit(refine_poses(G, start_poses(G, E, x, 1), x, 12))
+    starts = start_poses(G, E, x, 6)  # the encoder's, 3 mirrored, 2 jittered
+    assert starts.shape == (4, 6, 3, 6)
+    assert torch.equal(starts[:, 0], start_poses(G, E, x, 1)[:, 0])
+    multi_pose = refine_poses(G, starts, x, 12)
     multi = fit(multi_pose)
     assert (multi <= one + 1e-6).all()
     assert multi.sum() < one.sum()  # and here some frame did better
-    assert torch.equal(multi_pose, refine_poses(G, z, x, 12, lr=0.06, hypotheses=4))
+    assert torch.equal(multi_pose, refine_poses(G, start_poses(G, E, x, 6), x, 12))
     with pytest.raises(ValueError, match="hypotheses"):
-        refine_poses(G, z, x, 12, hypotheses=0)
+        start_poses(G, E, x, 0)
+
+
+def test_mirrored_poses_render_the_mirrored_image():
+    """A pose estimated on a flipped image maps back to the pose that renders the original: the
+    render of the mapped pose equals the flipped render of the estimated one (symmetric rod)."""
+    from inseggan_ros.model import make_generator
+    from inseggan_ros.segment import _mirror_poses
+
+    cfg = ModelConfig(renderer="spheres", composite="zbuffer", spheres=4, **SMALL)
+    G = make_generator(cfg)
+    with torch.no_grad():
+        G.radius_shape.fill_(50.0)  # equal radii: the rod is mirror-symmetric
+        pose = torch.randn(2, 3, 6) * torch.tensor([0.8, 0.8, 0.8, 0.3, 0.3, 0.1])
+        img = G.render_poses(pose)
+        for fx, fy in ((True, False), (False, True), (True, True)):
+            dims = [d for d, f in ((3, fx), (2, fy)) if f]
+            mirrored = G.render_poses(_mirror_poses(pose, fx, fy))
+            assert (mirrored - torch.flip(img, dims)).abs().max() < 1e-4
