@@ -14,13 +14,17 @@ from conftest import BAGS, REPO
 
 from inseggan_ros import checkpoint, data, evaluate
 from inseggan_ros.metrics import mean_miou
+from inseggan_ros.modelcard import full_resolution_scores
 
 MODELS = sorted(p.parent for p in (REPO / "models").glob("*/card.json"))
 
 
-def below_kmeans(card: dict) -> bool:
-    """What the card records for the model's sample bag: InSeGAN not above K-Means."""
+def below_kmeans(card: dict, full_resolution: bool = False) -> bool:
+    """What the card records for the model's sample bag: InSeGAN not above K-Means (at 64 x 64,
+    or at the bag's full resolution, as the segmenter node outputs)."""
     b = card["sample_bag_scores"]
+    if full_resolution:
+        b = b["full_resolution"]
     return b["inseggan"] <= b["kmeans"]
 
 
@@ -43,10 +47,12 @@ def test_card_matches_checkpoint(folder):
     assert card["n_instances"] == state["model_config"]["n_instances"]
     assert card["tau"] == pytest.approx(state["tau"])
     assert card["refine_steps"] == state["inference"]["refine_steps"]
+    assert card["hypotheses"] == state["inference"]["hypotheses"]
     assert card["precision"] == state["precision"]
     assert card["iterations"] == state["iteration"]
     seg = checkpoint.load_for_inference(path, device="cpu")
     assert seg.tau == pytest.approx(card["tau"]) and seg.refine_steps == card["refine_steps"]
+    assert seg.hypotheses == card["hypotheses"]
     readme = (folder / "README.md").read_text()
     assert f"{card['tau']:.3f}" in readme and (folder / "qualitative.png").is_file()
 
@@ -74,6 +80,9 @@ def test_segments_its_sample_bag_as_its_card_says(folder):
     assert ours == pytest.approx(recorded["inseggan"], abs=0.01)
     assert km == pytest.approx(recorded["kmeans"], abs=0.01)
     assert ours > 0.3, "well above labelling everything as one object (about 0.2)"
+    full = full_resolution_scores(checkpoint.load_for_inference(folder / "model.pt", device="cpu"),
+                                  BAGS / card["sample_bag"])
+    assert full == pytest.approx(recorded["full_resolution"], abs=0.01)
 
 
 @pytest.mark.parametrize("folder", MODELS, ids=[p.name for p in MODELS])

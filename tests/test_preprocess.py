@@ -6,7 +6,7 @@ import pytest
 from scipy import ndimage
 
 from inseggan_ros.preprocess import (PreprocessConfig, estimate_floor, fill_missing,
-                                     find_bin_roi, labels_to_full, masks_to_full, prepare,
+                                     find_bin_roi, labels_to_full, prepare,
                                      prepare_batch, resize_labels, roi_from_camera)
 from inseggan_ros.sim.camera import get_camera
 from inseggan_ros.sim.noise import get_noise
@@ -119,13 +119,16 @@ def test_labels_to_full_only_on_input_foreground(frames):
     full = labels_to_full(lab64, p)
     assert full.shape == scene.depth.shape and full.dtype == lab64.dtype
     assert not full[~p.full_fg].any()
-    fg = p.full_fg & (full > 0)
-    assert (full[fg] == scene.labels[fg]).mean() > 0.9  # round trip through 64 x 64
+    x0, y0, x1, y1 = p.roi
+    inside = np.zeros_like(p.full_fg)
+    inside[y0:y1, x0:x1] = True
+    # every foreground pixel of the region gets an instance, even where its 64 x 64 cell is
+    # background (an object's rim): the nearest labelled cell's
+    assert np.array_equal(full > 0, p.full_fg & inside)
+    assert (full[p.full_fg] == scene.labels[p.full_fg]).mean() > 0.9  # round trip via 64 x 64
     everything = labels_to_full(np.ones((64, 64), np.int64), p)
-    assert np.array_equal(everything > 0, p.full_fg)
-    masks = masks_to_full(np.stack([lab64 == k for k in (1, 2)]), p)
-    assert masks.shape == (2, *scene.depth.shape)
-    assert np.array_equal(masks[0], full == 1) and np.array_equal(masks[1], full == 2)
+    assert np.array_equal(everything > 0, p.full_fg & inside)
+    assert not labels_to_full(np.zeros((64, 64), np.uint8), p).any()
     with pytest.raises(ValueError, match=r"valid: \(64, 64\)"):
         labels_to_full(np.zeros((32, 32), np.uint8), p)
     with pytest.raises(ValueError, match="the depth frame's shape"):

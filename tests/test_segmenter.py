@@ -105,9 +105,11 @@ def test_replayed_bag_is_segmented_better_than_kmeans(replayed, request):
     from test_models import below_kmeans
 
     card = json.loads((REPO / "models" / DEFAULT_MODEL / "card.json").read_text())
-    if below_kmeans(card):
+    if below_kmeans(card, full_resolution=True):
+        full = card["sample_bag_scores"]["full_resolution"]
         request.applymarker(pytest.mark.xfail(strict=True, reason=(
-            "the default model's card records InSeGAN below K-Means on this sample bag")))
+            f"the default model's card records InSeGAN {full['inseggan']:.3f} vs K-Means "
+            f"{full['kmeans']:.3f} on this sample bag at full resolution")))
     ours, km = _scores(replayed)
     assert ours > km
 
