@@ -22,7 +22,7 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml", "README.md"]),
-    ] + share_tree("models") + share_tree("bags"),
+    ] + share_tree("models") + share_tree("bags") + share_tree("config"),
     install_requires=["setuptools"],
     extras_require={"test": ["pytest"]},
     zip_safe=True,

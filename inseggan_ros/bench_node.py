@@ -90,8 +90,18 @@ def main(argv=None) -> int:
     ap.add_argument("--refine-steps", type=int, help="segmenter refine_steps (default: the model's)")
     ap.add_argument("--hypotheses", type=int,
                     help="segmenter refine_hypotheses (default: the model's)")
+    ap.add_argument("--default-transport", action="store_true",
+                    help="Fast DDS's built-in transports instead of the shipped large-frames "
+                         "profile (config/fastdds_large_frames.xml)")
     args = ap.parse_args(argv)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    from .dds import PROFILE_VARIABLES, use_large_frames_profile
+
+    if args.default_transport:
+        for v in PROFILE_VARIABLES:
+            os.environ.pop(v, None)
+    profile = "built-in transports" if args.default_transport else use_large_frames_profile()
+    print(f"bench-node: Fast DDS profile: {profile}", flush=True)
 
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
@@ -179,7 +189,7 @@ def main(argv=None) -> int:
     steps = "the model's" if args.refine_steps is None else args.refine_steps
     print(f"\nsegmenter node, {args.width}x{args.height} 16UC1 at {args.rate:.0f} Hz for "
           f"{args.seconds:.0f} s (model {last.get('model', '?')}, {last.get('device', '?')}, "
-          f"refine_steps {steps})")
+          f"refine_steps {steps}, Fast DDS: {profile})")
     print(f"  frames: sent {len(sent)}, answered {len(got)} ({100 * len(got) / max(len(sent), 1):.1f} %),"
           f" dropped {len(sent) - len(got)} (node received about {received}; skipped "
           f"{last.get('frames_skipped', '?')})")

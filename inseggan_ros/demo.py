@@ -47,6 +47,9 @@ def main(argv=None) -> int:
     ap.add_argument("--timeout", type=float, default=120.0)
     args = ap.parse_args(argv)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    from .dds import use_large_frames_profile
+
+    print(f"demo: Fast DDS profile {use_large_frames_profile()}")
 
     import rclpy
     from rclpy.qos import qos_profile_sensor_data
