@@ -164,6 +164,13 @@ def cmd_eval(args) -> int:
     from .checkpoint import load_for_inference
 
     seg = load_for_inference(args.model, device=args.device)
+    for name in ("refine_steps", "hypotheses"):
+        value = getattr(args, name)
+        if value is not None:
+            if value < (0 if name == "refine_steps" else 1):
+                raise ValueError(f"--{name.replace('_', '-')} {value} invalid; valid: "
+                                 f"{'>= 0' if name == 'refine_steps' else '>= 1'}")
+            setattr(seg, name, value)
     n = seg.model_cfg.n_instances
     if args.data:
         d = data_mod.load_sim_split(args.data, args.split, seg.prep_cfg, limit=args.frames)
@@ -176,13 +183,15 @@ def cmd_eval(args) -> int:
     methods = args.methods.split(",") if args.methods else None
     results = evaluate.run_methods(d, n, seg, methods, progress=not args.quiet)
     summary = evaluate.summarise(results, len(d["x"]))
-    summary.update({"model": str(args.model), "data": source, "tau": seg.tau})
+    summary.update({"model": str(args.model), "data": source, "tau": seg.tau,
+                    "refine_steps": seg.refine_steps, "hypotheses": seg.hypotheses})
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     evaluate.write_json(out / "results.json", summary)
     evaluate.qualitative_png(out / "qualitative.png", d, results)
     print(f"{source}: {summary['frames']} frames, {summary['hard_frames']} hard "
-          f"({summary['hard_rule']}); model {args.model}, tau {seg.tau:.2f}")
+          f"({summary['hard_rule']}); model {args.model}, tau {seg.tau:.2f}, "
+          f"{seg.refine_steps} refinement steps x {seg.hypotheses} starts")
     print(evaluate.format_table(summary))
     print(f"wrote {out / 'results.json'} and {out / 'qualitative.png'}")
     return 0
@@ -375,6 +384,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--topic")
     p.add_argument("--frames", type=int, default=200)
     p.add_argument("--methods", help="comma-separated baselines (default: all)")
+    p.add_argument("--refine-steps", type=int,
+                   help="test-time refinement steps (default: the model's; 0 for a checkpoint "
+                        "from training)")
+    p.add_argument("--hypotheses", type=int, help="refinement starting points (default: the model's)")
     p.add_argument("--device", default="auto")
     p.add_argument("--out", type=Path, default=Path("eval_out"))
     p.add_argument("--quiet", action="store_true")

@@ -78,6 +78,15 @@ def test_eval_cli_writes_table_json_and_png(tiny_model, tmp):
     for m in r["methods"].values():
         assert 0 <= m["miou_all"] <= 1 and m["ms_per_frame"] > 0
     assert (tmp / "ev" / "qualitative.png").read_bytes()[:4] == b"\x89PNG"
+    p = run_cli("eval", "--model", tiny_model / "run" / "best.pt", "--data",
+                tiny_model / "data", "--frames", "4", "--out", tmp / "ev2", "--quiet",
+                "--methods", "kmeans", "--refine-steps", "3", "--hypotheses", "2",
+                check=True, timeout=600)
+    r = json.loads((tmp / "ev2" / "results.json").read_text())
+    assert (r["refine_steps"], r["hypotheses"]) == (3, 2) and "3 refinement steps" in p.stdout
+    p = run_cli("eval", "--model", tiny_model / "run" / "best.pt", "--data",
+                tiny_model / "data", "--frames", "4", "--out", tmp / "ev3", "--hypotheses", "0")
+    assert p.returncode != 0 and "--hypotheses 0 invalid; valid: >= 1" in p.stderr
 
 
 def test_bad_model_files_give_one_clear_error(tmp):
