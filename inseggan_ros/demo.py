@@ -85,7 +85,7 @@ def main(argv=None) -> int:
         rclpy.spin_once(node, timeout_sec=0.1)
     replay = subprocess.Popen(
         [_executable("bin_replay"), "--ros-args", "-p", f"object:={args.object}",
-         "-p", f"rate:={args.rate}", "-p", f"max_frames:={args.frames + 10}"],
+         "-p", f"rate:={args.rate}", "-p", f"max_frames:={3 * args.frames + 10}"],
         stderr=subprocess.PIPE, text=True)
     print(f"demo: bin_replay (pid {replay.pid}) publishes simulated {args.object} bins at "
           f"{args.rate} Hz; segmenter (pid {segmenter.pid}) segments them "
@@ -140,6 +140,10 @@ def main(argv=None) -> int:
     print(f"demo: {len(done)} frames segmented; end-to-end latency (stamp -> labels received) "
           f"p50 {np.percentile(s[:, 2], 50):.1f} ms, p99 {np.percentile(s[:, 2], 99):.1f} ms; "
           f"mIoU {s[:, 0].mean():.3f} (K-Means on the same frames {s[:, 1].mean():.3f})")
+    sent = sum(1 for s_ in depth_by if s_ <= done[-1])
+    print(f"demo: bin_replay published {sent} frames up to the last one shown; the segmenter "
+          f"answered {sum(1 for s_ in seg_by if s_ <= done[-1])} (with keep-last 1 it drops the "
+          f"frames that arrive while it is busy)")
     print(f"demo: wrote {sheet} and {bag} (read back: {len(back)} frames, segmenter labels "
           f"{'identical' if same else 'DIFFERENT'})")
     return 0 if len(back) == len(done) and same else 1

@@ -126,6 +126,7 @@ class Segmenter(Node):
         except ValueError as e:
             raise ConfigError(str(e)) from None
         self.add_on_set_parameters_callback(self._on_set_parameters)
+        self._warm_up()
 
         n = self.model.model_cfg.n_instances
         self.pub_labels = self.create_publisher(Image, "~/labels", 5)
@@ -152,6 +153,15 @@ class Segmenter(Node):
         self.get_logger().info(
             f"model {self.model_path} ({n} x instances, tau {self.model.tau:.3f}, device "
             f"{self.model.device}); listening on {self.sub.topic_name}")
+
+    def _warm_up(self) -> None:
+        """One inference on a synthetic input before subscribing, so that the first real frame
+        does not pay PyTorch's one-time set-up (the demo's first frame took 1.7 s without)."""
+        s = self.model.prep_cfg.size
+        x = np.full((1, 1, s, s), -1.0, np.float32)
+        x[0, 0, s // 4:s // 2, s // 4:3 * s // 4] = 0.0  # one flat object
+        self.model.segment_batch(x, refine_steps=self.p["refine_steps"],
+                                 hypotheses=self.p["refine_hypotheses"])
 
     # ------------------------------------------------------------------ parameters
     @staticmethod
