@@ -121,22 +121,25 @@ def _mirror_poses(pose: torch.Tensor, flip_x: bool, flip_y: bool) -> torch.Tenso
 
 
 @torch.no_grad()
-def start_poses(G, E, x: torch.Tensor, hypotheses: int = 1) -> torch.Tensor:
-    """(B, 1, 64, 64) inputs -> (B, H, n, 6) starting poses for `refine_poses`.
+def start_poses(G, E, x: torch.Tensor, hypotheses: int = 1, z: torch.Tensor | None = None
+                ) -> torch.Tensor:
+    """(B, 1, 64, 64) inputs -> (B, H, n, 6) starting poses for `refine_poses` (`z`: E(x), if
+    already computed).
 
     Hypothesis 0 is the encoder's estimate. The next (up to 3) are its estimates on the
     mirrored input (left-right, up-down, both), mapped back: test-time augmentation that gives
     genuinely different guesses. Any more are the earlier ones jittered by HYPOTHESIS_JITTER (a
     fixed random draw: deterministic). Measured on 100 cylinder validation frames, 30 steps:
-    mIoU 0.742 with 4 jittered starts, 0.754 with the 4 mirrors, 0.764 with 8 (docs)."""
+    mIoU 0.742 with 4 jittered starts, 0.754 with the 4 mirrors, 0.754-0.764 with 8
+    (docs/experiments.md)."""
     if hypotheses < 1:
         raise ValueError(f"hypotheses must be >= 1, got {hypotheses}")
     B = len(x)
     starts = []
     for flip_x, flip_y in MIRRORS[:hypotheses]:
         dims = [d for d, f in ((3, flip_x), (2, flip_y)) if f]
-        z = E(torch.flip(x, dims) if dims else x)
-        pose = G.pose(z.reshape(-1, z.shape[-1])).reshape(B, z.shape[1], 6)
+        codes = z if (z is not None and not dims) else E(torch.flip(x, dims) if dims else x)
+        pose = G.pose(codes.reshape(-1, codes.shape[-1])).reshape(B, codes.shape[1], 6)
         starts.append(_mirror_poses(pose, flip_x, flip_y))
     pose = torch.stack(starts, 1)
     extra = hypotheses - len(starts)
@@ -192,10 +195,11 @@ def infer(G, E, x: torch.Tensor, filtered: bool | None = None, refine_steps: int
     `filtered` (default: for the learned renderer only, whose renders are noisy; the explicit
     templates render clean edges that a blur would only soften) median- and Gauss-filters
     every render, as the reference code does. `refine_steps`, `hypotheses`: test-time
-    refinement (`refine_poses`, or `refine` on the codes for the learned renderer)."""
+    refinement (`refine_poses` from `start_poses`; for the learned renderer `refine` on the
+    codes, from the encoder's codes only)."""
     z = E(x)
     if refine_steps > 0 and hasattr(G, "render_poses"):
-        pose = refine_poses(G, start_poses(G, E, x, hypotheses), x, refine_steps)
+        pose = refine_poses(G, start_poses(G, E, x, hypotheses, z), x, refine_steps)
         renders = G.render_poses(pose)
         return {"z": z, "pose": pose, "renders": renders,
                 "reconstruction": G.zbuffer(renders)}
