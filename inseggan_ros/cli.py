@@ -164,13 +164,14 @@ def cmd_eval(args) -> int:
     from .checkpoint import load_for_inference
 
     seg = load_for_inference(args.model, device=args.device)
-    for name in ("refine_steps", "hypotheses"):
-        value = getattr(args, name)
-        if value is not None:
-            if value < (0 if name == "refine_steps" else 1):
-                raise ValueError(f"--{name.replace('_', '-')} {value} invalid; valid: "
-                                 f"{'>= 0' if name == 'refine_steps' else '>= 1'}")
-            setattr(seg, name, value)
+    if args.refine_steps is not None:
+        if args.refine_steps < 0:
+            raise ValueError(f"--refine-steps {args.refine_steps} invalid; valid: >= 0")
+        seg.refine_steps = args.refine_steps
+    if args.hypotheses is not None:
+        if args.hypotheses < 1:
+            raise ValueError(f"--hypotheses {args.hypotheses} invalid; valid: >= 1")
+        seg.hypotheses = args.hypotheses
     n = seg.model_cfg.n_instances
     if args.data:
         d = data_mod.load_sim_split(args.data, args.split, seg.prep_cfg, limit=args.frames)

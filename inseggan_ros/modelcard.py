@@ -136,13 +136,14 @@ def sample_bag_scores(seg, bag_name: str) -> dict:
     from .metrics import mean_miou
     from .nodes.bin_replay import resolve_bag
 
-    frames = data_mod.load_bag(resolve_bag(bag_name), seg.prep_cfg)
+    path = resolve_bag(bag_name)
+    frames = data_mod.load_bag(path, seg.prep_cfg)
     results = evaluate.run_methods(frames, seg.model_cfg.n_instances, seg, ["kmeans"],
                                    progress=False)
     return {"frames": len(frames["x"]),
             "inseggan": float(mean_miou(results["inseggan"]["scores"])),
             "kmeans": float(mean_miou(results["kmeans"]["scores"])),
-            "full_resolution": full_resolution_scores(seg, resolve_bag(bag_name))}
+            "full_resolution": full_resolution_scores(seg, path)}
 
 
 def full_resolution_scores(seg, bag_path) -> dict:
