@@ -47,7 +47,8 @@ def simulated_frames(count: int, width: int, height: int) -> list[np.ndarray]:
 
 
 def in_process_reference(frames, model_path: str, refine_steps: int | None = None,
-                         hypotheses: int | None = None, repeats: int = 3) -> dict:
+                         hypotheses: int | None = None, repeats: int = 3,
+                         smooth_iters: int | None = None) -> dict:
     """Inference alone and conversion alone, in this process (one thread), for comparison."""
     from dataclasses import replace
 
@@ -70,7 +71,7 @@ def in_process_reference(frames, model_path: str, refine_steps: int | None = Non
             depth = conversions.depth_to_metres(msg)
             t1 = time.perf_counter()
             out = seg(depth, prep, reconstruction=False, refine_steps=refine_steps,
-                      hypotheses=hypotheses)
+                      hypotheses=hypotheses, smooth_iters=smooth_iters)
             t2 = time.perf_counter()
             conversions.numpy_to_image(out.labels, "mono8", msg.header)
             t3 = time.perf_counter()
@@ -90,6 +91,8 @@ def main(argv=None) -> int:
     ap.add_argument("--refine-steps", type=int, help="segmenter refine_steps (default: the model's)")
     ap.add_argument("--hypotheses", type=int,
                     help="segmenter refine_hypotheses (default: the model's)")
+    ap.add_argument("--smooth-iters", type=int,
+                    help="segmenter smooth_iters (default: the model's)")
     ap.add_argument("--default-transport", action="store_true",
                     help="Fast DDS's built-in transports instead of the shipped large-frames "
                          "profile (config/fastdds_large_frames.xml)")
@@ -118,7 +121,8 @@ def main(argv=None) -> int:
 
     frames = simulated_frames(args.distinct_frames, args.width, args.height)
     try:
-        ref = in_process_reference(frames, args.model, args.refine_steps, args.hypotheses)
+        ref = in_process_reference(frames, args.model, args.refine_steps, args.hypotheses,
+                                   smooth_iters=args.smooth_iters)
     except (CheckpointError, ConfigError) as e:
         print(f"bench-node: error: {e}", file=sys.stderr)
         return 2
@@ -137,6 +141,8 @@ def main(argv=None) -> int:
         model += ["-p", f"refine_steps:={args.refine_steps}"]
     if args.hypotheses is not None:
         model += ["-p", f"refine_hypotheses:={args.hypotheses}"]
+    if args.smooth_iters is not None:
+        model += ["-p", f"smooth_iters:={args.smooth_iters}"]
     seg = subprocess.Popen([_executable("segmenter"), "--ros-args", *model,
                             "-p", "latency_window:=100000",
                             "-r", "depth:=camera/depth/image_rect_raw"],

@@ -15,6 +15,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -172,6 +173,8 @@ def cmd_eval(args) -> int:
         if args.hypotheses < 1:
             raise ValueError(f"--hypotheses {args.hypotheses} invalid; valid: >= 1")
         seg.hypotheses = args.hypotheses
+    if args.smooth_iters is not None:
+        seg.smooth = replace(seg.smooth, iters=args.smooth_iters)  # validates: >= 0
     n = seg.model_cfg.n_instances
     if args.data:
         d = data_mod.load_sim_split(args.data, args.split, seg.prep_cfg, limit=args.frames)
@@ -185,14 +188,16 @@ def cmd_eval(args) -> int:
     results = evaluate.run_methods(d, n, seg, methods, progress=not args.quiet)
     summary = evaluate.summarise(results, len(d["x"]))
     summary.update({"model": str(args.model), "data": source, "tau": seg.tau,
-                    "refine_steps": seg.refine_steps, "hypotheses": seg.hypotheses})
+                    "refine_steps": seg.refine_steps, "hypotheses": seg.hypotheses,
+                    "smooth_iters": seg.smooth.iters})
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     evaluate.write_json(out / "results.json", summary)
     evaluate.qualitative_png(out / "qualitative.png", d, results)
     print(f"{source}: {summary['frames']} frames, {summary['hard_frames']} hard "
           f"({summary['hard_rule']}); model {args.model}, tau {seg.tau:.2f}, "
-          f"{seg.refine_steps} refinement steps x {seg.hypotheses} starts")
+          f"{seg.refine_steps} refinement steps x {seg.hypotheses} starts, "
+          f"{seg.smooth.iters} smoothing iterations")
     print(evaluate.format_table(summary))
     print(f"wrote {out / 'results.json'} and {out / 'qualitative.png'}")
     return 0
@@ -206,7 +211,8 @@ def cmd_export(args) -> int:
                         refine_steps=args.refine_steps, hypotheses=args.hypotheses,
                         half=not args.no_half,
                         frames=args.frames, notes=args.config_name or "",
-                        sample_bag=args.sample_bag, also_refine=args.also_refine)
+                        sample_bag=args.sample_bag, also_refine=args.also_refine,
+                        smooth_iters=args.smooth_iters)
     print(f"exported {args.name}: tau {card['tau']:.3f}, {card['precision']}, refine steps "
           f"{card['refine_steps']} x {card['hypotheses']} hypotheses; test split:")
     print(format_table(card["test"]))
@@ -310,6 +316,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--refine-steps", type=int, default=0, help="test-time refinement steps")
     p.add_argument("--hypotheses", type=int, default=1,
                    help="starting points of test-time refinement (multi-start, default 1)")
+    p.add_argument("--smooth-iters", type=int, default=0,
+                   help="depth-aware label smoothing iterations (segment.SmoothConfig; 0 = off)")
     p.add_argument("--no-half", action="store_true", help="keep float32 weights")
     p.add_argument("--frames", type=int, default=200)
     p.add_argument("--config-name", help="the named training config, for the card")
@@ -389,6 +397,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="test-time refinement steps (default: the model's; 0 for a checkpoint "
                         "from training)")
     p.add_argument("--hypotheses", type=int, help="refinement starting points (default: the model's)")
+    p.add_argument("--smooth-iters", type=int,
+                   help="label smoothing iterations (default: the model's; 0 = off)")
     p.add_argument("--device", default="auto")
     p.add_argument("--out", type=Path, default=Path("eval_out"))
     p.add_argument("--quiet", action="store_true")

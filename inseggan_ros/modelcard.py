@@ -36,21 +36,25 @@ def _val_miou(seg, val: dict) -> float:
 
 def export_model(checkpoint_path, data_root, name: str, out_dir, refine_steps: int = 0,
                  hypotheses: int = 1, half: bool = True, frames: int = 200, notes: str = "",
-                 sample_bag: str | None = None, also_refine: int | None = None) -> dict:
+                 sample_bag: str | None = None, also_refine: int | None = None,
+                 smooth_iters: int = 0) -> dict:
+    from dataclasses import asdict
+
     import torch
 
     from . import checkpoint as ckpt
     from . import data as data_mod
     from . import evaluate
-    from .segment import calibrate_tau, infer
+    from .segment import SmoothConfig, calibrate_tau, infer
 
     state = ckpt.load(checkpoint_path)
     seg = ckpt.load_for_inference(checkpoint_path, device="cpu")
     seg.refine_steps, seg.hypotheses = refine_steps, hypotheses
+    seg.smooth = SmoothConfig(iters=smooth_iters)
     val = data_mod.load_sim_split(data_root, "val", seg.prep_cfg, limit=frames)
     test = data_mod.load_sim_split(data_root, "test", seg.prep_cfg, limit=frames)
 
-    # 1. tau with the shipped inference settings
+    # 1. tau with the shipped inference settings (on the z-buffered labels, before smoothing)
     x = torch.from_numpy(val["x"])
     renders = torch.cat([infer(seg.G, seg.E, x[i:i + 50], refine_steps=refine_steps,
                                hypotheses=hypotheses)["renders"]
@@ -62,7 +66,8 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, refine_steps: i
     # 2. half precision only if it costs nothing measurable
     keep = {k: v for k, v in state.items() if k not in ("discriminator", "optimizers", "rng", "format")}
     keep["tau"] = tau
-    keep["inference"] = {"refine_steps": int(refine_steps), "hypotheses": int(hypotheses)}
+    keep["inference"] = {"refine_steps": int(refine_steps), "hypotheses": int(hypotheses),
+                         "smooth": asdict(seg.smooth)}
     precision, val_half = "float32", None
     if half:
         G16 = {k: v.half().float() if v.is_floating_point() else v for k, v in keep["generator"].items()}
@@ -105,6 +110,7 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, refine_steps: i
         "wall_minutes": round(state["elapsed_seconds"] / 60, 1),
         "hardware": f"{platform.machine()} CPU, {os.cpu_count()} cores (torch threads: 1)",
         "tau": tau, "refine_steps": int(refine_steps), "hypotheses": int(hypotheses),
+        "smooth_iters": int(smooth_iters),
         "precision": precision,
         "sample_bag": sample_bag, "sample_bag_scores": bag_scores,
         "val_miou": {"float32": val_full, "float16": val_half},
@@ -204,7 +210,8 @@ def card_markdown(card: dict) -> str:
         f"{card['hardware']}, batch {card['train_config']['batch_size']}",
         f"* **Inference:** tau {card['tau']:.3f} (calibrated on the 200 validation scenes), "
         f"{card['refine_steps']} test-time refinement steps from {card.get('hypotheses', 1)} "
-        f"starting point(s), weights in {card['precision']} "
+        f"starting point(s), {card.get('smooth_iters', 0)} label-smoothing iterations, "
+        f"weights in {card['precision']} "
         f"(validation mIoU float32 {card['val_miou']['float32']:.4f}"
         + (f", float16 {card['val_miou']['float16']:.4f}" if card['val_miou']['float16'] is not None else "")
         + ")", "",

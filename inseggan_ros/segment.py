@@ -12,7 +12,7 @@ tau is calibrated on validation data and stored in the checkpoint (no per-object
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -235,6 +235,76 @@ def labels_from_renders(renders: torch.Tensor, tau: float, fg: torch.Tensor | No
     return labels
 
 
+@dataclass(frozen=True)
+class SmoothConfig:
+    """Depth-aware smoothing of the z-buffered labels: mean-field inference in a fully connected
+    CRF (Kraehenbuehl and Koltun 2011) restricted to a (2 radius + 1)^2 window. The unary term is
+    the model's label (weight 1), the pairwise term a Potts reward for agreeing with neighbours
+    of similar height, weight * exp(-dh^2 / 2 sigma_height^2 - dp^2 / 2 sigma_px^2). Labels
+    then follow the input's height edges instead of the 64 x 64 render's. iters = 0: off.
+    Heights are the model input's units ([-1, 1] over max_height); distances in 64 x 64 pixels."""
+    iters: int = 20
+    radius: int = 4
+    sigma_height: float = 0.2
+    sigma_px: float = 2.5
+    weight: float = 3.0
+
+    def __post_init__(self):
+        for name, ok, valid in (("iters", self.iters >= 0, ">= 0"),
+                                ("radius", self.radius >= 1, ">= 1"),
+                                ("sigma_height", self.sigma_height > 0, "> 0"),
+                                ("sigma_px", self.sigma_px > 0, "> 0"),
+                                ("weight", self.weight >= 0, ">= 0")):
+            if not ok:
+                raise ValueError(f"smoothing {name} {getattr(self, name)!r} invalid; valid: {valid}")
+
+
+def smooth_labels(labels: torch.Tensor, x: torch.Tensor, n: int,
+                  cfg: SmoothConfig = SmoothConfig()) -> torch.Tensor:
+    """(B, H, W) labels (0 = background, 1..n) of the (B, 1, H, W) input -> smoothed labels
+    (`SmoothConfig`). Background stays background; every foreground pixel keeps a label 1..n.
+    The pairwise weights between foreground pixels form one sparse matrix per frame."""
+    if cfg.iters == 0:
+        return labels
+    r = cfg.radius
+    dy, dx = torch.meshgrid(torch.arange(-r, r + 1), torch.arange(-r, r + 1), indexing="ij")
+    keep = (dy != 0) | (dx != 0)
+    dy, dx = dy[keep], dx[keep]
+    spatial = cfg.weight * torch.exp(-(dy ** 2 + dx ** 2) / (2 * cfg.sigma_px ** 2))
+    lab, heights = labels.cpu().numpy(), x[:, 0].float().cpu().numpy()
+    out = lab.copy()
+    for b in range(len(lab)):
+        out[b] = _smooth_frame(lab[b], heights[b], n, cfg, dy.numpy(), dx.numpy(),
+                               spatial.numpy())
+    return torch.from_numpy(out).to(labels.device)
+
+
+def _smooth_frame(lab: np.ndarray, h: np.ndarray, n: int, cfg: SmoothConfig, dy, dx, spatial
+                  ) -> np.ndarray:
+    from scipy.sparse import csr_matrix
+    from scipy.special import softmax
+
+    rows, cols = np.nonzero(lab > 0)
+    if len(rows) == 0:
+        return lab
+    r, (H, W) = cfg.radius, lab.shape
+    index = np.full((H + 2 * r, W + 2 * r), -1)  # padded pixel -> its foreground number
+    index[rows + r, cols + r] = np.arange(len(rows))
+    nb = index[rows[:, None] + r + dy, cols[:, None] + r + dx]  # (P, K) neighbours
+    src, k = np.nonzero(nb >= 0)
+    dst = nb[src, k]
+    hp = h[rows, cols]
+    w = spatial[k] * np.exp(-(hp[src] - hp[dst]) ** 2 / (2 * cfg.sigma_height ** 2))
+    pair = csr_matrix((w.astype(np.float32), (src, dst)), shape=(len(rows), len(rows)))
+    unary = np.eye(n, dtype=np.float32)[lab[rows, cols] - 1]  # (P, n) one-hot
+    q = unary
+    for _ in range(cfg.iters):
+        q = softmax(unary + pair @ q, axis=1)
+    out = lab.copy()
+    out[rows, cols] = q.argmax(1) + 1
+    return out
+
+
 def _fill_nearest(labels: torch.Tensor, fg: torch.Tensor) -> torch.Tensor:
     """`preprocess.fill_labels_nearest` on every frame that has a label and a hole to fill."""
     from .preprocess import fill_labels_nearest
@@ -300,12 +370,14 @@ class Segmenter:
     """A trained model + its preprocessing + tau: depth frames in, segmentations out."""
 
     def __init__(self, G, E, model_cfg, prep_cfg, tau: float, device: str = "cpu",
-                 refine_steps: int = 0, hypotheses: int = 1):
+                 refine_steps: int = 0, hypotheses: int = 1,
+                 smooth: SmoothConfig = SmoothConfig(iters=0)):
         self.G, self.E = G.eval().to(device), E.eval().to(device)
         for p in self.G.parameters():  # test-time refinement optimises codes, never weights
             p.requires_grad_(False)
         self.model_cfg, self.prep_cfg, self.tau, self.device = model_cfg, prep_cfg, tau, device
         self.refine_steps, self.hypotheses = int(refine_steps), int(hypotheses)
+        self.smooth = smooth
 
     @staticmethod
     def from_checkpoint(path, device: str = "auto", tau: float | None = None) -> "Segmenter":
@@ -315,27 +387,33 @@ class Segmenter:
 
     @torch.no_grad()
     def segment_batch(self, x: np.ndarray | torch.Tensor, fg=None, tau: float | None = None,
-                      refine_steps: int | None = None, hypotheses: int | None = None) -> dict:
-        """(B, 1, 64, 64) prepared inputs -> labels (B, 64, 64) uint8, renders, scores, recon."""
+                      refine_steps: int | None = None, hypotheses: int | None = None,
+                      smooth_iters: int | None = None) -> dict:
+        """(B, 1, 64, 64) prepared inputs -> labels (B, 64, 64) uint8, renders, scores, recon.
+        `tau`, `refine_steps`, `hypotheses`, `smooth_iters` override the model's settings."""
         tau = self.tau if tau is None else float(tau)
         steps = self.refine_steps if refine_steps is None else int(refine_steps)
         hyp = self.hypotheses if hypotheses is None else int(hypotheses)
+        smooth = self.smooth if smooth_iters is None else replace(self.smooth, iters=smooth_iters)
         x = torch.as_tensor(x, dtype=torch.float32, device=self.device)
         out = infer(self.G, self.E, x, refine_steps=steps, hypotheses=hyp)
         fg_t = (x[:, 0] > -1 + 1e-4) if fg is None else torch.as_tensor(fg, device=self.device)
         labels = labels_from_renders(out["renders"], tau, fg_t)
+        labels = smooth_labels(labels, x, out["renders"].shape[1], smooth)
         out["labels"] = labels
         out["scores"] = instance_scores(out["renders"], labels, tau)
         return out
 
     def __call__(self, depth_m: np.ndarray, prep_cfg=None, tau: float | None = None,
                  reconstruction: bool = True, refine_steps: int | None = None,
-                 hypotheses: int | None = None) -> Segmentation:
+                 hypotheses: int | None = None, smooth_iters: int | None = None
+                 ) -> Segmentation:
         """One depth frame (H, W) in metres -> Segmentation at the input's resolution.
 
         `prep_cfg` overrides the model's preprocessing (bin region, floor, min_height: the
         node's parameters); `tau` the calibrated threshold; `reconstruction=False` skips the
-        metric re-rendered depth; `refine_steps` / `hypotheses` the model's test-time refinement.
+        metric re-rendered depth; `refine_steps` / `hypotheses` the model's test-time refinement;
+        `smooth_iters` its label smoothing (`SmoothConfig`).
         Raises ValueError on a bad frame."""
         from .preprocess import labels_to_full, prepare
 
@@ -345,7 +423,8 @@ class Segmenter:
                              f"{self.prep_cfg.max_height} m, {self.prep_cfg.size} px")
         prep = prepare(depth_m, prep_cfg)
         out = self.segment_batch(prep.x[None, None], fg=prep.fg[None], tau=tau,
-                                 refine_steps=refine_steps, hypotheses=hypotheses)
+                                 refine_steps=refine_steps, hypotheses=hypotheses,
+                                 smooth_iters=smooth_iters)
         labels64 = out["labels"][0].cpu().numpy()
         labels = labels_to_full(labels64, prep)
         recon = None

@@ -8,7 +8,8 @@ from conftest import BAGS, run_cli
 
 from inseggan_ros import bags, checkpoint
 from inseggan_ros.checkpoint import CheckpointError
-from inseggan_ros.segment import calibrate_tau, instance_scores, labels_from_renders
+from inseggan_ros.segment import (SmoothConfig, calibrate_tau, instance_scores, labels_from_renders,
+                                  smooth_labels)
 
 
 def test_zbuffer_labels_and_scores_by_hand():
@@ -46,6 +47,43 @@ def tiny_model(tmp_path_factory):
             "--eval-every", "10", "--config", "cpu", "--nf", "8", "--batch-size", "4",
             "--quiet", "--device", "cpu", check=True, timeout=600)
     return root
+
+
+def _two_blocks(edge_col: int, label_col: int):
+    """A 32 x 32 frame: a low block (height -0.2) left of `edge_col` and a high one (0.6) right
+    of it, on rows 8..23; labels split at `label_col` instead (a misplaced boundary)."""
+    x = torch.full((1, 1, 32, 32), -1.0)
+    x[0, 0, 8:24, 6:edge_col] = -0.2
+    x[0, 0, 8:24, edge_col:26] = 0.6
+    labels = torch.zeros(1, 32, 32, dtype=torch.uint8)
+    labels[0, 8:24, 6:label_col] = 1
+    labels[0, 8:24, label_col:26] = 2
+    return x, labels
+
+
+def test_label_smoothing_moves_a_boundary_onto_the_height_edge():
+    x, labels = _two_blocks(edge_col=16, label_col=19)  # 3 columns of the high block labelled 1
+    out = smooth_labels(labels, x, n=3)
+    _, want = _two_blocks(edge_col=16, label_col=16)
+    torch.testing.assert_close(out, want, rtol=0, atol=0)
+    torch.testing.assert_close(smooth_labels(labels, x, 3, SmoothConfig(iters=0)), labels)
+
+
+def test_label_smoothing_leaves_a_boundary_without_a_height_edge_in_place():
+    x, labels = _two_blocks(edge_col=26, label_col=16)  # one flat block, two labels
+    out = smooth_labels(labels, x, n=2)
+    moved = (out != labels).sum().item()
+    assert moved <= 16, moved  # at most a column's worth of pixels changes hands
+    assert set(out[labels > 0].unique().tolist()) == {1, 2}
+    assert (out[labels == 0] == 0).all()  # background stays background
+
+
+def test_label_smoothing_settings_are_validated():
+    for kwargs, message in [({"iters": -1}, "iters -1 invalid; valid: >= 0"),
+                            ({"radius": 0}, "radius 0 invalid; valid: >= 1"),
+                            ({"sigma_height": 0.0}, "sigma_height 0.0 invalid; valid: > 0")]:
+        with pytest.raises(ValueError, match=message):
+            SmoothConfig(**kwargs)
 
 
 def test_segmenter_on_a_full_resolution_frame(tiny_model):
@@ -87,6 +125,14 @@ def test_eval_cli_writes_table_json_and_png(tiny_model, tmp):
     p = run_cli("eval", "--model", tiny_model / "run" / "best.pt", "--data",
                 tiny_model / "data", "--frames", "4", "--out", tmp / "ev3", "--hypotheses", "0")
     assert p.returncode != 0 and "--hypotheses 0 invalid; valid: >= 1" in p.stderr
+    p = run_cli("eval", "--model", tiny_model / "run" / "best.pt", "--data",
+                tiny_model / "data", "--frames", "4", "--out", tmp / "ev4", "--quiet",
+                "--methods", "kmeans", "--smooth-iters", "5", check=True, timeout=600)
+    r = json.loads((tmp / "ev4" / "results.json").read_text())
+    assert r["smooth_iters"] == 5 and "5 smoothing iterations" in p.stdout
+    p = run_cli("eval", "--model", tiny_model / "run" / "best.pt", "--data",
+                tiny_model / "data", "--frames", "4", "--out", tmp / "ev5", "--smooth-iters", "-1")
+    assert p.returncode == 2 and "smoothing iters -1 invalid; valid: >= 0" in p.stderr
 
 
 def test_bad_model_files_give_one_clear_error(tmp):
