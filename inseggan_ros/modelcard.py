@@ -156,8 +156,10 @@ def full_resolution_scores(seg, bag_path) -> dict:
     """InSeGAN and K-Means at the bag's own resolution, scored against its ground truth.
 
     InSeGAN as the segmenter node runs with its defaults (bin region found in the first frame,
-    floor depth estimated per frame), labels mapped back to every input pixel; K-Means on
-    (x, y, depth) of the ground-truth foreground of the same frames."""
+    floor depth estimated per frame), labels mapped back to every input pixel and carried onto
+    objects just outside the region (`preprocess.extend_labels`); K-Means on (x, y, depth) of
+    the ground-truth foreground of the same frames (the true foreground, pixels outside the bin
+    region included: a mask InSeGAN does not get)."""
     from dataclasses import replace
 
     from . import bags

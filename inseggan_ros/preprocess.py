@@ -19,7 +19,9 @@ depth frame, simulated or from a camera, always the same way (the paper's real-d
 6. x = clip(height / max_height, 0, 1) * 2 - 1, and exactly -1 on background.
 
 `labels_to_full` maps a size x size label image back to the input's pixels (foreground only),
-`resize_labels` brings ground truth to the model's resolution for evaluation.
+`extend_labels` carries the labels onto object pixels just outside the region (objects leaning
+over the edge of the bin floor), `resize_labels` brings ground truth to the model's resolution
+for evaluation.
 
 Speed (one core: cv2.setNumThreads(1); a simulated RealSense-preset frame with sensor noise at
 1280 x 720, 1 % missing pixels; best of 7 x 100 calls on this project's 2-core machine while
@@ -51,6 +53,11 @@ class PreprocessConfig:
     min_height: float = 0.006  # metres above the floor below which a pixel is background
     max_height: float = 0.05  # metres above the floor mapped to +1
     margin: int = 2  # pixels shaved off every side of the region
+    # Labels beyond the region (`extend_labels`): how far, as a fraction of the region's longer
+    # side (0 = labels stay inside it), and the largest depth step between neighbouring pixels
+    # of one surface, metres.
+    rim_band: float = 0.125
+    rim_step: float = 0.0015
 
     def __post_init__(self):
         if isinstance(self.size, bool) or not isinstance(self.size, (int, np.integer)) \
@@ -92,6 +99,11 @@ class PreprocessConfig:
                 or self.margin < 0:
             raise ValueError(f"margin {self.margin!r} invalid; valid: an integer >= 0 (pixels)")
         object.__setattr__(self, "margin", int(self.margin))
+        if not (math.isfinite(self.rim_band) and 0 <= self.rim_band <= 1):
+            raise ValueError(f"rim_band {self.rim_band!r} invalid; valid: a fraction of the "
+                             "region's side in [0, 1] (0 = labels stay inside the region)")
+        if not (math.isfinite(self.rim_step) and self.rim_step > 0):
+            raise ValueError(f"rim_step {self.rim_step!r} invalid; valid: metres > 0")
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -375,6 +387,75 @@ def labels_to_full(labels64: np.ndarray, prep: Prepared) -> np.ndarray:
         up = lab.take(rows, 0).take(cols, 1)
     out = np.zeros(prep.shape, lab.dtype)
     np.copyto(out[y0:y1, x0:x1], up, where=fg)
+    return out
+
+
+def extend_labels(labels: np.ndarray, depth_m: np.ndarray, prep: Prepared,
+                  cfg: PreprocessConfig) -> np.ndarray:
+    """Full-resolution labels (`labels_to_full`) -> the same labels carried onto the object
+    pixels just outside the bin region: an object leaning over the edge of the bin floor lies
+    partly outside it, seen against the inner wall faces, and would otherwise be cut there.
+
+    A pixel within `cfg.rim_band` x the region's longer side of the region (and inside
+    `cfg.polygon`, if given) that is above the floor by `min_height`, and whose depth differs
+    from each of its 4 neighbours by less than `cfg.rim_step` (not steep: a wall face seen from
+    above is steep), gets a label when it is connected to labelled pixels through such pixels
+    (4-connected, each step below `cfg.rim_step`: one continuous surface); so do the pixels
+    above the floor within band / 6 pixels of those (the objects' steep sides). Each takes the
+    label of the nearest labelled pixel. On the shipped sample bags at full resolution, with
+    20 smoothing iterations: cylinder mIoU 0.786 -> 0.836, wooden_block 0.690 -> 0.730,
+    hex_nut 0.713 -> 0.723."""
+    from scipy.ndimage import binary_dilation, distance_transform_edt
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    x0, y0, x1, y1 = prep.roi
+    band = int(round(cfg.rim_band * max(x1 - x0, y1 - y0)))
+    if band == 0 or not labels.any():
+        return labels
+    H, W = labels.shape
+    Y0, Y1, X0, X1 = max(0, y0 - band), min(H, y1 + band), max(0, x0 - band), min(W, x1 + band)
+    lab = labels[Y0:Y1, X0:X1]
+    d = np.nan_to_num(np.asarray(depth_m, np.float64)[Y0:Y1, X0:X1], nan=0.0, posinf=0.0,
+                      neginf=0.0)
+    # candidates: above the floor, unlabelled, and not steep (a wall face seen from above is
+    # steep across it but level along it: one level ring would otherwise run round the bin)
+    steep = np.zeros(d.shape, bool)
+    for axis in (0, 1):
+        jump = np.abs(np.diff(d, axis=axis)) >= cfg.rim_step
+        lo = [slice(None)] * 2
+        hi = [slice(None)] * 2
+        lo[axis], hi[axis] = slice(None, -1), slice(1, None)
+        steep[tuple(lo)] |= jump
+        steep[tuple(hi)] |= jump
+    cand = (d > 0) & (prep.floor_depth - d > cfg.min_height) & (lab == 0) & ~steep
+    if cfg.polygon is not None:
+        cand &= _polygon_mask(labels.shape, cfg.polygon)[Y0:Y1, X0:X1]
+    if not cand.any():
+        return labels
+    node = cand | (lab > 0)
+    ids = np.arange(node.size).reshape(node.shape)
+    edges = []
+    for a, b in (((slice(None), slice(1, None)), (slice(None), slice(None, -1))),
+                 ((slice(1, None), slice(None)), (slice(None, -1), slice(None)))):
+        ok = node[a] & node[b] & (np.abs(d[a] - d[b]) < cfg.rim_step)
+        edges.append((ids[a][ok], ids[b][ok]))
+    src = np.concatenate([e[0] for e in edges])
+    dst = np.concatenate([e[1] for e in edges])
+    graph = coo_matrix((np.ones(len(src), np.int8), (src, dst)), shape=(node.size, node.size))
+    _, comp = connected_components(graph, directed=False)
+    comp = comp.reshape(node.shape)
+    reached = cand & np.isin(comp, np.unique(comp[lab > 0]))
+    if not reached.any():
+        return labels
+    # and the steep pixels next to them: the objects' own sides (band / 6 pixels: 2 at 224 x 224)
+    above = (d > 0) & (prep.floor_depth - d > cfg.min_height) & (lab == 0)
+    reached |= binary_dilation(reached, iterations=max(1, round(band / 6))) & above
+    _, (iy, ix) = distance_transform_edt(lab == 0, return_indices=True)
+    out = labels.copy()
+    grown = lab.copy()
+    grown[reached] = lab[iy[reached], ix[reached]]
+    out[Y0:Y1, X0:X1] = grown
     return out
 
 

@@ -415,7 +415,7 @@ class Segmenter:
         metric re-rendered depth; `refine_steps` / `hypotheses` the model's test-time refinement;
         `smooth_iters` its label smoothing (`SmoothConfig`).
         Raises ValueError on a bad frame."""
-        from .preprocess import labels_to_full, prepare
+        from .preprocess import extend_labels, labels_to_full, prepare
 
         prep_cfg = self.prep_cfg if prep_cfg is None else prep_cfg
         if prep_cfg.max_height != self.prep_cfg.max_height or prep_cfg.size != self.prep_cfg.size:
@@ -426,7 +426,7 @@ class Segmenter:
                                  refine_steps=refine_steps, hypotheses=hypotheses,
                                  smooth_iters=smooth_iters)
         labels64 = out["labels"][0].cpu().numpy()
-        labels = labels_to_full(labels64, prep)
+        labels = extend_labels(labels_to_full(labels64, prep), depth_m, prep, prep_cfg)
         recon = None
         if reconstruction:
             recon64 = out["reconstruction"][0, 0].cpu().numpy()

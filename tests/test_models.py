@@ -48,11 +48,12 @@ def test_card_matches_checkpoint(folder):
     assert card["tau"] == pytest.approx(state["tau"])
     assert card["refine_steps"] == state["inference"]["refine_steps"]
     assert card["hypotheses"] == state["inference"]["hypotheses"]
+    assert card["smooth_iters"] == state["inference"]["smooth"]["iters"]
     assert card["precision"] == state["precision"]
     assert card["iterations"] == state["iteration"]
     seg = checkpoint.load_for_inference(path, device="cpu")
     assert seg.tau == pytest.approx(card["tau"]) and seg.refine_steps == card["refine_steps"]
-    assert seg.hypotheses == card["hypotheses"]
+    assert seg.hypotheses == card["hypotheses"] and seg.smooth.iters == card["smooth_iters"]
     readme = (folder / "README.md").read_text()
     assert f"{card['tau']:.3f}" in readme and (folder / "qualitative.png").is_file()
 

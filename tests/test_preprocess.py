@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from inseggan_ros.preprocess import (PreprocessConfig, estimate_floor, fill_missing,
-                                     find_bin_roi, labels_to_full, prepare,
+from inseggan_ros.preprocess import (PreprocessConfig, estimate_floor, extend_labels,
+                                     fill_missing, find_bin_roi, labels_to_full, prepare,
                                      prepare_batch, resize_labels, roi_from_camera)
 from inseggan_ros.sim.camera import get_camera
 from inseggan_ros.sim.noise import get_noise
@@ -96,6 +96,55 @@ def test_prepare_background_is_exactly_minus_one_and_covers_the_objects(frames):
         # full-resolution foreground: objects, not floor or walls
         objects = scene.labels > 0
         assert (p.full_fg & objects).sum() / (p.full_fg | objects).sum() > 0.85, (cam, noise)
+
+
+def _leaning_object():
+    """A 100 x 100 bin floor at 0.5 m, region x, y in 10..90; a flat object 20 mm high across
+    its right edge (x 70..95, y 40..60); a wall face right of the region elsewhere (a ramp
+    6 mm a pixel towards the camera, as a vertical wall looks from above)."""
+    depth = np.full((100, 100), 0.5, np.float32)
+    ramp = 0.5 - 0.006 * np.arange(1, 11, dtype=np.float32)
+    depth[:, 90:100] = ramp
+    depth[40:60, 70:95] = 0.48
+    cfg = PreprocessConfig(roi=(10, 10, 90, 90), margin=0, floor_depth=0.5)
+    p = prepare(depth, cfg)
+    labels = np.zeros(depth.shape, np.uint8)
+    labels[40:60, 70:90] = 1  # what the model labelled inside the region
+    return depth, cfg, p, labels
+
+
+def test_labels_are_carried_onto_an_object_leaning_over_the_region_edge_not_onto_walls():
+    depth, cfg, p, labels = _leaning_object()
+    out = extend_labels(labels, depth, p, cfg)
+    assert (out[40:60, 70:95] == 1).all()  # the whole object, beyond the region too
+    # the wall face stays unlabelled but for the object's sides: band / 6 = 2 pixels
+    assert not out[:38, 90:].any() and not out[62:, 90:].any()
+    assert (out[:, :90] == labels[:, :90]).all()  # inside the region nothing changes
+    off = PreprocessConfig(roi=cfg.roi, margin=0, floor_depth=0.5, rim_band=0.0)
+    np.testing.assert_array_equal(extend_labels(labels, depth, p, off), labels)
+    near = PreprocessConfig(roi=cfg.roi, margin=0, floor_depth=0.5, rim_band=0.05)  # 4 px
+    assert (extend_labels(labels, depth, p, near)[40:60, 90:94] == 1).all()
+    assert not extend_labels(labels, depth, p, near)[:, 94:].any()
+    with pytest.raises(ValueError, match="rim_step 0.0 invalid; valid: metres > 0"):
+        PreprocessConfig(rim_step=0.0)
+    with pytest.raises(ValueError, match="rim_band 2.0 invalid"):
+        PreprocessConfig(rim_band=2.0)
+
+
+def test_carried_labels_follow_the_ground_truth_in_simulated_bins(frames):
+    for (cam, noise, obj), (_, scene) in frames.items():
+        cfg = PreprocessConfig()
+        p = prepare(scene.depth, cfg)
+        full = labels_to_full(resize_labels(scene.labels, p), p)
+        out = extend_labels(full, scene.depth, p, cfg)
+        added = (out > 0) & (full == 0)
+        objects = scene.labels > 0
+        assert (out > 0).sum() >= (full > 0).sum()
+        if added.sum() >= 20:
+            # mostly objects (the rest: walls beside them), with their own instance
+            assert objects[added].mean() > 0.7, (cam, noise, obj, objects[added].mean())
+            right = out[added & objects] == scene.labels[added & objects]
+            assert right.mean() > 0.8, (cam, noise, obj, right.mean())
 
 
 def test_heights_are_mapped_linearly():

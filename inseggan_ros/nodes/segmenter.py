@@ -206,7 +206,8 @@ class Segmenter(Node):
 
     def _declare_runtime(self) -> None:
         d, prep = self._descriptor, self.model.prep_cfg
-        self._runtime_names = ["roi", "bin_polygon", "floor_depth", "min_height", "tau",
+        self._runtime_names = ["roi", "bin_polygon", "floor_depth", "min_height", "rim_band",
+                               "rim_step", "tau",
                                "refine_steps", "refine_hypotheses", "smooth_iters",
                                "publish_masks", "publish_overlay", "publish_reconstruction",
                                "resolution_change_frames"]
@@ -223,6 +224,13 @@ class Segmenter(Node):
                            d("metres above the floor below which a pixel is background (about "
                              "half an object height)",
                              float_range=(0.0, float(prep.max_height)))),
+            "rim_band": (float(prep.rim_band), d(
+                "how far beyond the bin region labels are carried onto objects leaning over its "
+                "edge, as a fraction of the region's longer side (0 = labels stay inside)",
+                float_range=(0.0, 1.0))),
+            "rim_step": (float(prep.rim_step), d(
+                "metres: the largest depth step between neighbouring pixels of one surface when "
+                "carrying labels beyond the bin region", float_range=(0.0001, 0.1))),
             "tau": (float(self.model.tau), d("render threshold in [-1, 1] (default: calibrated, "
                                              "stored in the model)", float_range=(-1.0, 1.0))),
             "refine_steps": (int(self.model.refine_steps), d(
@@ -260,7 +268,8 @@ class Segmenter(Node):
         floor = float(new["floor_depth"])
         prep = replace(self.model.prep_cfg, roi=roi, polygon=polygon,
                        floor_depth=floor if floor > 0 else None,
-                       min_height=float(new["min_height"]))
+                       min_height=float(new["min_height"]),
+                       rim_band=float(new["rim_band"]), rim_step=float(new["rim_step"]))
         self.p, self.prep = new, prep
         self._roi_cache = {}
 
