@@ -9,7 +9,7 @@ from conftest import BAGS, run_cli
 from inseggan_ros import bags, checkpoint
 from inseggan_ros.checkpoint import CheckpointError
 from inseggan_ros.segment import (SmoothConfig, calibrate_tau, instance_scores, labels_from_renders,
-                                  smooth_labels)
+                                  smooth_full, smooth_labels)
 
 
 def test_zbuffer_labels_and_scores_by_hand():
@@ -76,6 +76,30 @@ def test_label_smoothing_leaves_a_boundary_without_a_height_edge_in_place():
     assert moved <= 16, moved  # at most a column's worth of pixels changes hands
     assert set(out[labels > 0].unique().tolist()) == {1, 2}
     assert (out[labels == 0] == 0).all()  # background stays background
+
+
+@pytest.mark.parametrize("side", [128, 400])  # 2 pixels per model pixel; 6, worked 3x coarser
+def test_full_resolution_smoothing_puts_blocky_boundaries_on_the_height_edge(side):
+    """Two objects meet along a diagonal height edge; labels upsampled from a coarse grid
+    follow it in steps. smooth_full moves most of the wrongly labelled pixels to the right
+    instance, and changes nothing else."""
+    depth = np.full((side, side), 0.5, np.float32)  # floor 0.5 m
+    lo, hi = side // 8, side - side // 8
+    r, c = np.mgrid[:side, :side]
+    inside = (r >= lo) & (r < hi) & (c >= lo) & (c < hi)
+    right = c > r + side // 10  # the true edge: a diagonal
+    depth[inside & ~right], depth[inside & right] = 0.49, 0.47  # 10 mm and 30 mm high
+    cell = side // 16  # a coarse grid: 4 model pixels a cell
+    coarse = (c // cell * cell + cell // 2) > (r // cell * cell + cell // 2) + side // 10
+    labels = np.where(inside, np.where(coarse, 2, 1), 0).astype(np.uint8)
+    truth = np.where(inside, np.where(right, 2, 1), 0)
+    out = smooth_full(labels, depth, 0.5, 0.05, 2, SmoothConfig(), 64, (0, 0, side, side))
+    before, after = (labels != truth).sum(), (out != truth).sum()
+    assert before > 0 and after < 0.5 * before, (before, after)
+    assert ((out > 0) == (labels > 0)).all()  # background and foreground unchanged
+    np.testing.assert_array_equal(
+        smooth_full(labels, depth, 0.5, 0.05, 2, SmoothConfig(iters=0), 64, (0, 0, side, side)),
+        labels)
 
 
 def test_label_smoothing_settings_are_validated():
