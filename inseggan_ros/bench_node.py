@@ -62,7 +62,9 @@ def in_process_reference(frames, model_path: str, refine_steps: int | None = Non
 
     torch.set_num_threads(1)
     seg = Segmenter.from_checkpoint(resolve_model(model_path), device="cpu")
-    prep = replace(seg.prep_cfg, roi=find_bin_roi(depth_to_metres(frames[0], "16UC1")))
+    # as the node runs by default: the bin region found once, the floor estimated per frame
+    prep = replace(seg.prep_cfg, roi=find_bin_roi(depth_to_metres(frames[0], "16UC1")),
+                   floor_depth=None)
     infer_ms, conv_ms = [], []
     for _ in range(repeats):
         for raw in frames:

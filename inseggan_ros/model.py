@@ -91,11 +91,9 @@ def init_weights(module: nn.Module) -> None:
 def rodrigues(axis_angle: torch.Tensor) -> torch.Tensor:
     """(B, 3) axis-angle -> (B, 3, 3) rotation matrices."""
     theta = axis_angle.norm(dim=1, keepdim=True).clamp_min(1e-8)
-    k = axis_angle / theta
-    K = torch.zeros(axis_angle.shape[0], 3, 3, device=axis_angle.device, dtype=axis_angle.dtype)
-    K[:, 0, 1], K[:, 0, 2] = -k[:, 2], k[:, 1]
-    K[:, 1, 0], K[:, 1, 2] = k[:, 2], -k[:, 0]
-    K[:, 2, 0], K[:, 2, 1] = -k[:, 1], k[:, 0]
+    kx, ky, kz = (axis_angle / theta).unbind(1)
+    zero = torch.zeros_like(kx)
+    K = torch.stack([zero, -kz, ky, kz, zero, -kx, -ky, kx, zero], 1).view(-1, 3, 3)
     s, c = torch.sin(theta)[..., None], torch.cos(theta)[..., None]
     eye = torch.eye(3, device=axis_angle.device, dtype=axis_angle.dtype).expand_as(K)
     return eye + s * K + (1 - c) * (K @ K)

@@ -61,7 +61,7 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, refine_steps: i
                          for i in range(0, len(x), 50)])
     tau, scores = calibrate_tau(renders, torch.from_numpy(val["fg"]), val["labels"])
     seg.tau = tau
-    val_full = scores[tau]
+    val_full = _val_miou(seg, val) if seg.smooth.iters else scores[tau]  # as shipped
 
     # 2. half precision only if it costs nothing measurable
     keep = {k: v for k, v in state.items() if k not in ("discriminator", "optimizers", "rng", "format")}

@@ -405,9 +405,7 @@ def extend_labels(labels: np.ndarray, depth_m: np.ndarray, prep: Prepared,
     label of the nearest labelled pixel. On the shipped sample bags at full resolution, with
     20 smoothing iterations: cylinder mIoU 0.786 -> 0.836, wooden_block 0.690 -> 0.730,
     hex_nut 0.713 -> 0.723."""
-    from scipy.ndimage import binary_dilation, distance_transform_edt
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
+    from scipy.ndimage import binary_dilation, distance_transform_edt, label
 
     x0, y0, x1, y1 = prep.roi
     band = int(round(cfg.rim_band * max(x1 - x0, y1 - y0)))
@@ -421,30 +419,20 @@ def extend_labels(labels: np.ndarray, depth_m: np.ndarray, prep: Prepared,
     # candidates: above the floor, unlabelled, and not steep (a wall face seen from above is
     # steep across it but level along it: one level ring would otherwise run round the bin)
     steep = np.zeros(d.shape, bool)
-    for axis in (0, 1):
-        jump = np.abs(np.diff(d, axis=axis)) >= cfg.rim_step
-        lo = [slice(None)] * 2
-        hi = [slice(None)] * 2
-        lo[axis], hi[axis] = slice(None, -1), slice(1, None)
-        steep[tuple(lo)] |= jump
-        steep[tuple(hi)] |= jump
+    down = np.abs(d[1:] - d[:-1]) >= cfg.rim_step
+    across = np.abs(d[:, 1:] - d[:, :-1]) >= cfg.rim_step
+    steep[1:] |= down
+    steep[:-1] |= down
+    steep[:, 1:] |= across
+    steep[:, :-1] |= across
     cand = (d > 0) & (prep.floor_depth - d > cfg.min_height) & (lab == 0) & ~steep
     if cfg.polygon is not None:
         cand &= _polygon_mask(labels.shape, cfg.polygon)[Y0:Y1, X0:X1]
     if not cand.any():
         return labels
-    node = cand | (lab > 0)
-    ids = np.arange(node.size).reshape(node.shape)
-    edges = []
-    for a, b in (((slice(None), slice(1, None)), (slice(None), slice(None, -1))),
-                 ((slice(1, None), slice(None)), (slice(None, -1), slice(None)))):
-        ok = node[a] & node[b] & (np.abs(d[a] - d[b]) < cfg.rim_step)
-        edges.append((ids[a][ok], ids[b][ok]))
-    src = np.concatenate([e[0] for e in edges])
-    dst = np.concatenate([e[1] for e in edges])
-    graph = coo_matrix((np.ones(len(src), np.int8), (src, dst)), shape=(node.size, node.size))
-    _, comp = connected_components(graph, directed=False)
-    comp = comp.reshape(node.shape)
+    # a candidate is not steep, so its steps to all its neighbours are below rim_step: the
+    # connected components of candidates and labelled pixels (4-connected) are the surfaces
+    comp, _ = label(cand | (lab > 0))
     reached = cand & np.isin(comp, np.unique(comp[lab > 0]))
     if not reached.any():
         return labels

@@ -12,6 +12,7 @@ tau is calibrated on validation data and stored in the checkpoint (no per-object
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -35,16 +36,24 @@ def _gauss(x: torch.Tensor, sigma: float = 0.8) -> torch.Tensor:
     return F.conv2d(F.pad(x, (0, 0, 2, 2), mode="replicate"), k.view(1, 1, 5, 1))
 
 
-def _adam_fit(param: torch.Tensor, loss_of, steps: int, lr: float) -> torch.Tensor:
-    """`steps` Adam steps on a copy of `param` minimising loss_of(param); -> the result."""
+def _adam_fit(param: torch.Tensor, loss_of, steps: int, lr: float,
+              betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8) -> torch.Tensor:
+    """`steps` Adam steps on a copy of `param` minimising loss_of(param); -> the result.
+
+    Adam written out for the one small tensor (the update of torch.optim.Adam, in its order of
+    operations): torch's optimizer costs about 0.65 ms a step in bookkeeping here, these few
+    tensor operations a tenth of that."""
     param = param.detach().clone().requires_grad_(True)
-    opt = torch.optim.Adam([param], lr=lr)
+    m, v = torch.zeros_like(param), torch.zeros_like(param)
+    b1, b2 = betas
     with torch.enable_grad():
-        for _ in range(steps):
-            loss = loss_of(param)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
+        for t in range(1, steps + 1):
+            grad, = torch.autograd.grad(loss_of(param), param)
+            with torch.no_grad():
+                m.lerp_(grad, 1 - b1)
+                v.mul_(b2).addcmul_(grad, grad, value=1 - b2)
+                denom = (v.sqrt() / math.sqrt(1 - b2 ** t)).add_(eps)
+                param.addcdiv_(m, denom, value=-lr / (1 - b1 ** t))
     return param.detach()
 
 

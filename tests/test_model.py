@@ -297,3 +297,23 @@ def test_mirrored_poses_render_the_mirrored_image():
             dims = [d for d, f in ((3, fx), (2, fy)) if f]
             mirrored = G.render_poses(_mirror_poses(pose, fx, fy))
             assert (mirrored - torch.flip(img, dims)).abs().max() < 1e-4
+
+
+def test_written_out_adam_matches_torch_adam():
+    from inseggan_ros.segment import _adam_fit
+
+    target = torch.linspace(-1, 1, 12).reshape(2, 6)
+    start = torch.zeros(2, 6)
+
+    def loss_of(p):
+        return ((p - target) ** 2 * torch.arange(1, 7.0)).sum() + p.abs().sum()
+
+    ours = _adam_fit(start, loss_of, 25, lr=0.06)
+    p = start.clone().requires_grad_(True)
+    opt = torch.optim.Adam([p], lr=0.06)
+    for _ in range(25):
+        opt.zero_grad()
+        loss_of(p).backward()
+        opt.step()
+    torch.testing.assert_close(ours, p.detach(), rtol=0, atol=1e-6)
+    assert loss_of(ours) < loss_of(start)
