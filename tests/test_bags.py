@@ -1,6 +1,7 @@
 """rosbag2 bags written and read back for real (MCAP and sqlite3), and every expected error."""
 import os
 import subprocess
+import time
 
 import numpy as np
 import pytest
@@ -166,11 +167,14 @@ def test_cli_simulate_bag_is_atomic(tmp):
     # killed while writing: no bag and no partial files
     proc = subprocess.Popen([str(installed_executable("inseggan")), "simulate-bag", "--quiet",
                              "--count", "100000", "--out", str(tmp / "killed")])
-    try:
-        proc.wait(timeout=4)
-    except subprocess.TimeoutExpired:
-        proc.send_signal(2)  # Ctrl-C
-        proc.wait(timeout=20)
+    deadline = time.monotonic() + 60  # until it writes: its partial bag exists, with data
+    while time.monotonic() < deadline and proc.poll() is None and not any(
+            f.is_file() and f.stat().st_size > 0 for d in tmp.glob(".killed.partial-*")
+            for f in d.rglob("*")):
+        time.sleep(0.1)
+    assert proc.poll() is None, "simulate-bag ended before it could be interrupted"
+    proc.send_signal(2)  # Ctrl-C while writing
+    proc.wait(timeout=30)
     assert proc.returncode == 130
     assert not (tmp / "killed").exists()
     assert [p.name for p in tmp.iterdir()] == ["cones"]
