@@ -6,9 +6,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import REPO, installed_executable
+from conftest import BAGS, REPO, installed_executable
 
-from inseggan_ros import image_codec
+from inseggan_ros import bags, image_codec
 from inseggan_ros.baselines import kmeans
 from inseggan_ros.metrics import mean_miou, miou_batch
 from inseggan_ros.nodes.segmenter import DEFAULT_MODEL
@@ -49,12 +49,15 @@ def replayed(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("e2e")
     ns = "/seg_e2e"
     seg = start_segmenter(ns)
-    proc, out = probe(tmp, ns, 12, 120)
+    # every frame of the bag (the bag loops until all have come round): the same frames the
+    # model card's full-resolution scores were measured on
+    frames = len(bags.read_all(BAGS / "cylinder_sim"))
+    proc, out = probe(tmp, ns, frames, 150)
     # looped with the bag's own stamps: frames lost while DDS discovery settles come round again
     replay = start_replay(ns, "source:=bag", "bag_path:=cylinder_sim", "rate:=4.0",
                           "restamp:=false", "loop:=true")
     try:
-        rc, got = finish(proc, out, 120)
+        rc, got = finish(proc, out, 150)
     finally:
         stop(replay)
         seg_rc = stop(seg)
