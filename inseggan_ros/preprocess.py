@@ -402,11 +402,9 @@ def extend_labels(labels: np.ndarray, depth_m: np.ndarray, prep: Prepared,
     above is steep), gets a label when it is connected to labelled pixels through such pixels
     (4-connected, each step below `cfg.rim_step`: one continuous surface); so do the pixels
     above the floor within band / 6 pixels of those (the objects' steep sides). Each takes the
-    label of the nearest labelled pixel. On the shipped sample bags at full resolution, with
-    20 smoothing iterations: cylinder mIoU 0.786 -> 0.836, wooden_block 0.690 -> 0.730,
-    hex_nut 0.713 -> 0.723."""
-    from scipy.ndimage import binary_dilation, distance_transform_edt, label
-
+    label of the nearest labelled pixel (5 x 5 chamfer distance). On the shipped sample bags at
+    full resolution, with 20 smoothing iterations: cylinder mIoU 0.786 -> 0.836, wooden_block
+    0.690 -> 0.730, hex_nut 0.713 -> 0.723. About 2 ms at 1280 x 720 (OpenCV)."""
     x0, y0, x1, y1 = prep.roi
     band = int(round(cfg.rim_band * max(x1 - x0, y1 - y0)))
     if band == 0 or not labels.any():
@@ -414,8 +412,8 @@ def extend_labels(labels: np.ndarray, depth_m: np.ndarray, prep: Prepared,
     H, W = labels.shape
     Y0, Y1, X0, X1 = max(0, y0 - band), min(H, y1 + band), max(0, x0 - band), min(W, x1 + band)
     lab = labels[Y0:Y1, X0:X1]
-    d = np.nan_to_num(np.asarray(depth_m, np.float64)[Y0:Y1, X0:X1], nan=0.0, posinf=0.0,
-                      neginf=0.0)
+    d = np.asarray(depth_m, np.float32)[Y0:Y1, X0:X1]
+    d = np.where(np.isfinite(d), d, np.float32(0))
     # candidates: above the floor, unlabelled, and not steep (a wall face seen from above is
     # steep across it but level along it: one level ring would otherwise run round the bin)
     steep = np.zeros(d.shape, bool)
@@ -425,24 +423,28 @@ def extend_labels(labels: np.ndarray, depth_m: np.ndarray, prep: Prepared,
     steep[:-1] |= down
     steep[:, 1:] |= across
     steep[:, :-1] |= across
-    cand = (d > 0) & (prep.floor_depth - d > cfg.min_height) & (lab == 0) & ~steep
+    above = (d > 0) & (prep.floor_depth - d > cfg.min_height) & (lab == 0)
     if cfg.polygon is not None:
-        cand &= _polygon_mask(labels.shape, cfg.polygon)[Y0:Y1, X0:X1]
+        above &= _polygon_mask(labels.shape, cfg.polygon)[Y0:Y1, X0:X1]
+    cand = above & ~steep
     if not cand.any():
         return labels
     # a candidate is not steep, so its steps to all its neighbours are below rim_step: the
     # connected components of candidates and labelled pixels (4-connected) are the surfaces
-    comp, _ = label(cand | (lab > 0))
-    reached = cand & np.isin(comp, np.unique(comp[lab > 0]))
+    _, comp = cv2.connectedComponents((cand | (lab > 0)).view(np.uint8), connectivity=4)
+    seeded = np.zeros(comp.max() + 1, bool)
+    seeded[comp[lab > 0]] = True
+    reached = cand & seeded[comp]
     if not reached.any():
         return labels
     # and the steep pixels next to them: the objects' own sides (band / 6 pixels: 2 at 224 x 224)
-    above = (d > 0) & (prep.floor_depth - d > cfg.min_height) & (lab == 0)
-    reached |= binary_dilation(reached, iterations=max(1, round(band / 6))) & above
-    _, (iy, ix) = distance_transform_edt(lab == 0, return_indices=True)
-    out = labels.copy()
+    side = max(1, round(band / 6))
+    near = cv2.dilate(reached.view(np.uint8), cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3)),
+                      iterations=side)
+    reached |= near.view(bool) & above
     grown = lab.copy()
-    grown[reached] = lab[iy[reached], ix[reached]]
+    grown[reached] = fill_missing(lab, lab > 0)[reached]  # the nearest labelled pixel's label
+    out = labels.copy()
     out[Y0:Y1, X0:X1] = grown
     return out
 

@@ -306,11 +306,13 @@ def smooth_frame(lab: np.ndarray, h: np.ndarray, n: int, cfg: SmoothConfig) -> n
     if len(moving) == 0:
         return lab
     nb = index[rows[moving, None] + r + dy, cols[moving, None] + r + dx]  # (M, K) neighbours
-    src, k = np.nonzero(nb >= 0)
-    dst = nb[src, k]
-    hp = h[rows, cols]
-    w = spatial[k] * np.exp(-(hp[moving[src]] - hp[dst]) ** 2 / (2 * cfg.sigma_height ** 2))
-    pair = csr_matrix((w.astype(np.float32), (src, dst)), shape=(len(moving), len(rows)))
+    hp = h[rows, cols].astype(np.float32)
+    dh = hp[moving, None] - hp[nb]  # (nb = -1, background: weight 0 below)
+    w = np.where(nb >= 0, spatial.astype(np.float32)
+                 * np.exp(dh * dh * np.float32(-0.5 / cfg.sigma_height ** 2)), np.float32(0))
+    K = nb.shape[1]
+    pair = csr_matrix((w.ravel(), np.maximum(nb, 0).ravel(), np.arange(0, w.size + 1, K)),
+                      shape=(len(moving), len(rows)))  # one row of K entries per moving pixel
     q = np.eye(n, dtype=np.float32)[lab[rows, cols] - 1]  # (P, n) one-hot
     unary = q[moving]
     for _ in range(cfg.iters):
