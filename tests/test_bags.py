@@ -171,14 +171,19 @@ def test_cli_simulate_bag_is_atomic(tmp):
     proc = subprocess.Popen([str(installed_executable("inseggan")), "simulate-bag", "--quiet",
                              "--count", "100000", "--out", str(tmp / "killed")],
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    deadline = time.monotonic() + 60  # until it writes: its partial bag exists, with data
-    while time.monotonic() < deadline and proc.poll() is None and not any(
-            f.is_file() and f.stat().st_size > 0 for d in tmp.glob(".killed.partial-*")
-            for f in d.rglob("*")):
-        time.sleep(0.1)
-    assert proc.poll() is None, "simulate-bag ended before it could be interrupted"
-    proc.send_signal(2)  # Ctrl-C while writing
-    proc.wait(timeout=30)
+    try:
+        deadline = time.monotonic() + 60  # until it writes: its partial bag exists, with data
+        while time.monotonic() < deadline and proc.poll() is None and not any(
+                f.is_file() and f.stat().st_size > 0 for d in tmp.glob(".killed.partial-*")
+                for f in d.rglob("*")):
+            time.sleep(0.1)
+        assert proc.poll() is None, "simulate-bag ended before it could be interrupted"
+        proc.send_signal(signal.SIGINT)  # Ctrl-C while writing
+        proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:  # never leave it running (it would simulate 100000 frames)
+            proc.kill()
+            proc.wait()
     assert proc.returncode == 130
     assert not (tmp / "killed").exists()
     assert [p.name for p in tmp.iterdir()] == ["cones"]
