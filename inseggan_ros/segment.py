@@ -289,12 +289,12 @@ def smooth_frame(lab: np.ndarray, h: np.ndarray, n: int, cfg: SmoothConfig) -> n
     from scipy.ndimage import maximum_filter, minimum_filter
     from scipy.sparse import csr_matrix
 
-    size = 2 * int(np.ceil(1.5 * cfg.radius)) + 1
-    other = np.where(lab > 0, lab, np.iinfo(np.uint8).max).astype(np.uint8)
-    free = (lab > 0) & (maximum_filter(lab, size) != minimum_filter(other, size))
     rows, cols = np.nonzero(lab > 0)
     if len(rows) == 0 or cfg.iters == 0:
         return lab
+    size = 2 * int(np.ceil(1.5 * cfg.radius)) + 1
+    other = np.where(lab > 0, lab, np.iinfo(np.uint8).max).astype(np.uint8)  # background: ignored
+    free = (lab > 0) & (maximum_filter(lab, size) != minimum_filter(other, size))
     r, (H, W) = cfg.radius, lab.shape
     dy, dx = np.mgrid[-r:r + 1, -r:r + 1].reshape(2, -1)
     keep = (dy != 0) | (dx != 0)
@@ -434,6 +434,9 @@ class Segmenter:
         self.refine_steps, self.hypotheses = int(refine_steps), int(hypotheses)
         self.smooth = smooth
 
+    def _smoothing(self, iters: int | None) -> SmoothConfig:
+        return self.smooth if iters is None else replace(self.smooth, iters=int(iters))
+
     @staticmethod
     def from_checkpoint(path, device: str = "auto", tau: float | None = None) -> "Segmenter":
         from .checkpoint import load_for_inference
@@ -449,7 +452,7 @@ class Segmenter:
         tau = self.tau if tau is None else float(tau)
         steps = self.refine_steps if refine_steps is None else int(refine_steps)
         hyp = self.hypotheses if hypotheses is None else int(hypotheses)
-        smooth = self.smooth if smooth_iters is None else replace(self.smooth, iters=smooth_iters)
+        smooth = self._smoothing(smooth_iters)
         x = torch.as_tensor(x, dtype=torch.float32, device=self.device)
         out = infer(self.G, self.E, x, refine_steps=steps, hypotheses=hyp)
         fg_t = (x[:, 0] > -1 + 1e-4) if fg is None else torch.as_tensor(fg, device=self.device)
@@ -482,9 +485,9 @@ class Segmenter:
                                  smooth_iters=smooth_iters)
         labels64 = out["labels"][0].cpu().numpy()
         labels = extend_labels(labels_to_full(labels64, prep), depth_m, prep, prep_cfg)
-        smooth = self.smooth if smooth_iters is None else replace(self.smooth, iters=smooth_iters)
         labels = smooth_full(labels, depth_m, prep.floor_depth, prep_cfg.max_height,
-                             self.model_cfg.n_instances, smooth, prep_cfg.size, prep.roi)
+                             self.model_cfg.n_instances, self._smoothing(smooth_iters),
+                             prep_cfg.size, prep.roi)
         recon = None
         if reconstruction:
             recon64 = out["reconstruction"][0, 0].cpu().numpy()
