@@ -213,5 +213,10 @@ def test_parameter_changes_are_validated_at_run_time():
         assert set_param("roi", "[10, 10, 200, 200]") == "ok"
         assert set_param("bin_polygon", "[1.0, 2.0]").startswith("rejected: bin_polygon")
         assert set_param("model_path", "'other.pt'").startswith("rejected")  # read-only
+        assert set_param("smooth_iters", "5") == "ok"
+        assert set_param("smooth_iters", "-1").startswith("rejected")  # outside 0..200
+        assert set_param("rim_band", "0.0") == "ok"
+        assert set_param("rim_band", "1.5").startswith("rejected")  # outside 0..1
+        assert set_param("rim_step", "0.0").startswith("rejected")  # outside 0.0001..0.1
     finally:
         assert stop(seg) == 0
