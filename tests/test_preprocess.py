@@ -125,6 +125,11 @@ def test_labels_are_carried_onto_an_object_leaning_over_the_region_edge_not_onto
     near = PreprocessConfig(roi=cfg.roi, margin=0, floor_depth=0.5, rim_band=0.05)  # 4 px
     assert (extend_labels(labels, depth, p, near)[40:60, 90:94] == 1).all()
     assert not extend_labels(labels, depth, p, near)[:, 94:].any()
+    # never outside a bin polygon: it says what is background
+    poly = ((10, 10), (92, 10), (92, 90), (10, 90))
+    fenced = PreprocessConfig(polygon=poly, margin=0, floor_depth=0.5)
+    out = extend_labels(labels, depth, prepare(depth, fenced), fenced)
+    assert (out[40:60, 70:92] == 1).all() and not out[:, 93:].any()
     with pytest.raises(ValueError, match="rim_step 0.0 invalid; valid: metres > 0"):
         PreprocessConfig(rim_step=0.0)
     with pytest.raises(ValueError, match="rim_band 2.0 invalid"):
