@@ -50,21 +50,17 @@ def in_process_reference(frames, model_path: str, refine_steps: int | None = Non
                          hypotheses: int | None = None, repeats: int = 3,
                          smooth_iters: int | None = None) -> dict:
     """Inference alone and conversion alone, in this process (one thread), for comparison."""
-    from dataclasses import replace
-
     import torch
 
     from .image_codec import depth_to_metres
     from .nodes import conversions
     from .nodes.segmenter import resolve_model
-    from .preprocess import find_bin_roi
+    from .preprocess import node_defaults
     from .segment import Segmenter
 
     torch.set_num_threads(1)
     seg = Segmenter.from_checkpoint(resolve_model(model_path), device="cpu")
-    # as the node runs by default: the bin region found once, the floor estimated per frame
-    prep = replace(seg.prep_cfg, roi=find_bin_roi(depth_to_metres(frames[0], "16UC1")),
-                   floor_depth=None)
+    prep = node_defaults(seg.prep_cfg, depth_to_metres(frames[0], "16UC1"))
     infer_ms, conv_ms = [], []
     for _ in range(repeats):
         for raw in frames:

@@ -160,15 +160,13 @@ def full_resolution_scores(seg, bag_path) -> dict:
     objects just outside the region (`preprocess.extend_labels`); K-Means on (x, y, depth) of
     the ground-truth foreground of the same frames (the true foreground, pixels outside the bin
     region included: a mask InSeGAN does not get)."""
-    from dataclasses import replace
-
     from . import bags
     from .baselines import kmeans
     from .metrics import mean_miou, miou_batch
-    from .preprocess import find_bin_roi
+    from .preprocess import node_defaults
 
     frames = bags.read_all(bag_path)
-    prep = replace(seg.prep_cfg, roi=find_bin_roi(frames[0].metres()), floor_depth=None)
+    prep = node_defaults(seg.prep_cfg, frames[0].metres())
     n = seg.model_cfg.n_instances
     ours, km, gt = [], [], []
     for f in frames:

@@ -33,7 +33,7 @@ A 224 x 224 simulated frame: 0.3 ms with `roi` and `floor_depth`, 1.4 ms automat
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from functools import lru_cache
 from typing import Iterable
 
@@ -311,6 +311,14 @@ def _region(cfg: PreprocessConfig, d: np.ndarray, valid: np.ndarray) -> Rect:
         raise ValueError(f"bin region {(x0, y0, x1, y1)} is too small for margin {m}; need more "
                          "than 2 * margin + 1 pixels per side")
     return x0 + m, y0 + m, x1 - m, y1 - m
+
+
+def node_defaults(cfg: PreprocessConfig, first_depth_m: np.ndarray) -> PreprocessConfig:
+    """`cfg` as the segmenter node applies it with its default parameters to a stream whose
+    first frame is `first_depth_m`: the bin region found in that frame, the floor depth
+    estimated per frame. (A model's stored config holds its training data's region and floor,
+    which fit no other camera.)"""
+    return replace(cfg, roi=find_bin_roi(first_depth_m), floor_depth=None)
 
 
 # ------------------------------------------------------------------------------ frames
