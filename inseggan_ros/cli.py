@@ -164,6 +164,11 @@ def cmd_eval(args) -> int:
     from . import evaluate
     from .checkpoint import load_for_inference
 
+    import torch
+
+    if args.threads < 1:
+        raise ValueError(f"--threads {args.threads} invalid; valid: >= 1")
+    torch.set_num_threads(args.threads)
     seg = load_for_inference(args.model, device=args.device)
     if args.refine_steps is not None:
         if args.refine_steps < 0:
@@ -400,6 +405,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--smooth-iters", type=int,
                    help="label smoothing iterations (default: the model's; 0 = off)")
     p.add_argument("--device", default="auto")
+    p.add_argument("--threads", type=int, default=1,
+                   help="CPU threads for inference (default 1, as the model cards and the node; "
+                        "the pick among refinement starts can tip with another count's rounding)")
     p.add_argument("--out", type=Path, default=Path("eval_out"))
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_eval)

@@ -42,7 +42,7 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--object", default="cylinder")
     ap.add_argument("--model", default="", help="segmenter model_path ('' = shipped default)")
-    ap.add_argument("--rate", type=float, default=5.0)
+    ap.add_argument("--rate", type=float, default=2.0)
     ap.add_argument("--out", type=Path, default=Path("demo_out"))
     ap.add_argument("--timeout", type=float, default=120.0)
     args = ap.parse_args(argv)
@@ -85,7 +85,7 @@ def main(argv=None) -> int:
         rclpy.spin_once(node, timeout_sec=0.1)
     replay = subprocess.Popen(
         [_executable("bin_replay"), "--ros-args", "-p", f"object:={args.object}",
-         "-p", f"rate:={args.rate}", "-p", f"max_frames:={3 * args.frames + 10}"],
+         "-p", f"rate:={args.rate}", "-p", f"max_frames:={4 * args.frames + 10}"],
         stderr=subprocess.PIPE, text=True)
     print(f"demo: bin_replay (pid {replay.pid}) publishes simulated {args.object} bins at "
           f"{args.rate} Hz; segmenter (pid {segmenter.pid}) segments them "

@@ -47,6 +47,8 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, refine_steps: i
     from . import evaluate
     from .segment import SmoothConfig, calibrate_tau, infer
 
+    torch.set_num_threads(1)  # as the card says, and as the node runs by default: the pick
+    # among refinement starts can tip with another thread count's rounding
     state = ckpt.load(checkpoint_path)
     seg = ckpt.load_for_inference(checkpoint_path, device="cpu")
     seg.refine_steps, seg.hypotheses = refine_steps, hypotheses

@@ -160,40 +160,111 @@ def start_poses(G, E, x: torch.Tensor, hypotheses: int = 1, z: torch.Tensor | No
     return pose
 
 
-def refine_poses(G, pose: torch.Tensor, x: torch.Tensor, steps: int, reseeds: int = 2,
-                 size: int = 32, lr: float = 0.06) -> torch.Tensor:
-    """Analysis by synthesis at test time, on the poses themselves (generators with explicit
-    templates): `steps` Adam steps in all on the n poses of each frame so that the z-buffered
-    composite matches the input (pyramid L1 at size x size), in `reseeds` + 1 rounds; between
-    rounds the least visible instance is moved onto the largest unexplained part of the input
-    (`_reseed`).
+# Levenberg-Marquardt refinement: finite-difference steps per pose number (axis-angle radians,
+# translation in image half-widths), and the floor of the IRLS weights 1 / |residual| (L1 fit).
+LM_EPS = 0.01
+LM_IRLS_FLOOR = 0.02
+LM_CHUNK = 32  # scenes (frames x hypotheses) per batch of perturbed renders: bounds memory
 
-    `pose`: (B, H, n, 6) starting points (`start_poses`), refined side by side in one batch;
-    each frame keeps the one that fits its input best (multi-start). Hypothesis 0 follows
-    exactly the path it would follow alone (Adam is per element, the loss a sum over frames),
-    so more hypotheses never fit worse. -> (B, n, 6) poses."""
+
+def _pyramid_features(img: torch.Tensor, levels: int = 3) -> torch.Tensor:
+    """(M, 1, s, s) -> (M, D): the image and its 2x2-average-pooled levels, each divided by its
+    side, side by side: the residual vector that `_lm_fit` fits (the pyramid's coarse levels
+    pull a misplaced render towards its object, as in `pyramid_l1`)."""
+    out = []
+    for level in range(levels):
+        if level:
+            img = F.avg_pool2d(img, 2)
+        out.append(img.flatten(1) / img.shape[-1])
+    return torch.cat(out, 1)
+
+
+@torch.no_grad()
+def _lm_fit(G, pose: torch.Tensor, target_features: torch.Tensor, iters: int, size: int,
+            template) -> torch.Tensor:
+    """`iters` Levenberg-Marquardt iterations on (M, n, 6) poses, each scene on its own,
+    minimising sum |zbuffer(renders) - target| over `_pyramid_features` (an L1 fit, by
+    iteratively reweighted least squares).
+
+    The Jacobian comes from finite differences, one pose number at a time: an instance's
+    perturbed render is z-buffered with the maximum of the others, so occlusion changes are
+    seen. A step is kept only where it lowers the scene's loss (then the damping falls),
+    otherwise the damping rises; so the loss never rises and every scene is independent of the
+    others in the batch."""
+    M, n, _ = pose.shape
+    eps = torch.full((6,), LM_EPS, dtype=pose.dtype, device=pose.device)
+    singles = G.render_poses(pose, size, template)  # (M, n, s, s)
+    current = _pyramid_features(singles.amax(1, keepdim=True))
+    residual = current - target_features
+    loss = residual.abs().sum(1)
+    damping = torch.full((M,), 1e-2, dtype=pose.dtype, device=pose.device)
+    for _ in range(iters):
+        top2, top_idx = singles.topk(2, dim=1) if n > 1 else (None, None)
+        J = []
+        for k in range(n):  # the others' z-buffer without instance k
+            if n > 1:
+                others = torch.where(top_idx[:, 0] == k, top2[:, 1], top2[:, 0])
+            else:
+                others = torch.full_like(singles[:, 0], -1.0)
+            moved = pose[:, k, None, :] + torch.diag(eps)  # (M, 6, 6): each number nudged
+            r = G.render_poses(moved, size, template)  # (M, 6, s, s)
+            comp = torch.maximum(r, others[:, None]).reshape(M * 6, 1, size, size)
+            J.append((_pyramid_features(comp).reshape(M, 6, -1) - current[:, None]) / LM_EPS)
+        J = torch.cat(J, 1)  # (M, 6n, D)
+        w = 1 / residual.abs().clamp_min(LM_IRLS_FLOOR)
+        Jw = J * w[:, None]
+        A = Jw @ J.transpose(1, 2)
+        g = (Jw * residual[:, None]).sum(2)
+        A = A + torch.diag_embed(damping[:, None] * torch.diagonal(A, dim1=1, dim2=2) + 1e-6)
+        step = torch.linalg.solve(A, -g[..., None])[..., 0].reshape(M, n, 6)
+        new_pose = pose + step
+        new_singles = G.render_poses(new_pose, size, template)
+        new_current = _pyramid_features(new_singles.amax(1, keepdim=True))
+        new_loss = (new_current - target_features).abs().sum(1)
+        better = new_loss < loss  # NaN from a singular step is never better
+        pose = torch.where(better[:, None, None], new_pose, pose)
+        singles = torch.where(better[:, None, None, None], new_singles, singles)
+        current = torch.where(better[:, None], new_current, current)
+        residual = current - target_features
+        loss = torch.where(better, new_loss, loss)
+        damping = torch.where(better, damping * 0.3, damping * 10).clamp(1e-4, 1e4)
+    return pose
+
+
+@torch.no_grad()
+def refine_poses(G, pose: torch.Tensor, x: torch.Tensor, steps: int, reseeds: int = 2,
+                 size: int = 32) -> torch.Tensor:
+    """Analysis by synthesis at test time, on the poses themselves (generators with explicit
+    templates): `steps` Levenberg-Marquardt iterations in all (`_lm_fit`) on the n poses of
+    each frame so that the z-buffered composite matches the input at size x size (L1 over a
+    3-level pyramid), in `reseeds` + 1 rounds; between rounds the least visible instance is
+    moved onto the largest unexplained part of the input (`_reseed`).
+
+    `pose`: (B, H, n, 6) starting points (`start_poses`), refined side by side; each frame
+    keeps the one that fits its input best (`pyramid_l1`, multi-start). Every scene is fitted
+    on its own, so hypothesis 0 follows exactly the path it would follow alone and more
+    hypotheses never fit worse. Levenberg-Marquardt replaced 30 Adam steps (session 5): on 100
+    cylinder validation frames, 4 starts, 12 iterations fit better in less time (mIoU 0.781
+    against 0.770, 89 against 112 ms a frame; docs/experiments.md). -> (B, n, 6) poses."""
     from .losses import pyramid_l1
 
     B, H, n, _ = pose.shape
     pose = pose.reshape(B * H, n, 6)
-    with torch.no_grad():
-        template = G.spheres()  # fixed while the poses move: computed once
+    template = G.spheres()  # fixed while the poses move: computed once
     target = F.adaptive_avg_pool2d(x, size).repeat_interleave(H, dim=0)
+    features = _pyramid_features(target)
     rounds = reseeds + 1 if steps >= 2 * (reseeds + 1) else 1
-
-    def loss_of(p, per_frame=False):
-        return pyramid_l1(G.zbuffer(G.render_poses(p, size, template)), target, 3,
-                          per_frame=per_frame) * (1 if per_frame else len(p))
-
     for r in range(rounds):
-        pose = _adam_fit(pose, loss_of, steps // rounds + (steps % rounds if r == rounds - 1 else 0), lr)
+        iters = steps // rounds + (steps % rounds if r == rounds - 1 else 0)
+        pose = torch.cat([_lm_fit(G, pose[i:i + LM_CHUNK], features[i:i + LM_CHUNK], iters, size,
+                                  template) for i in range(0, len(pose), LM_CHUNK)])
         if r < rounds - 1:
-            pose = _reseed(G, pose.detach(), target, min_pixels=max(4, size * size // 150))
+            pose = _reseed(G, pose, target, min_pixels=max(4, size * size // 150))
     if H > 1:
-        with torch.no_grad():
-            best = loss_of(pose, per_frame=True).reshape(B, H).argmin(1)
-        return pose.reshape(B, H, n, 6)[torch.arange(B), best].detach()
-    return pose.detach()
+        loss = pyramid_l1(G.zbuffer(G.render_poses(pose, size, template)), target, 3,
+                          per_frame=True)
+        return pose.reshape(B, H, n, 6)[torch.arange(B), loss.reshape(B, H).argmin(1)]
+    return pose
 
 
 @torch.no_grad()

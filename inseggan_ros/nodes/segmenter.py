@@ -234,11 +234,13 @@ class Segmenter(Node):
             "tau": (float(self.model.tau), d("render threshold in [-1, 1] (default: calibrated, "
                                              "stored in the model)", float_range=(-1.0, 1.0))),
             "refine_steps": (int(self.model.refine_steps), d(
-                "test-time refinement steps of the poses per frame (default: the model's; each "
-                "step costs about 1-2 ms on one CPU thread)", int_range=(0, 500))),
+                "test-time refinement of the poses per frame: Levenberg-Marquardt iterations "
+                "(default: the model's; each costs about 1.1 ms per starting point on one CPU "
+                "thread)", int_range=(0, 500))),
             "refine_hypotheses": (int(self.model.hypotheses), d(
                 "starting points refined side by side, the best-fitting kept (default: the "
-                "model's; 4 cost about 2.5x the time of 1)", int_range=(1, 32))),
+                "model's; the refinement's time grows about in proportion)",
+                int_range=(1, 32))),
             "smooth_iters": (int(self.model.smooth.iters), d(
                 "iterations of depth-aware label smoothing (default: the model's; 0 = off; "
                 "20 cost about 15 ms a 1280 x 720 frame on one CPU thread)",
