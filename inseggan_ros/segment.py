@@ -192,7 +192,7 @@ def _lm_fit(G, pose: torch.Tensor, target_features: torch.Tensor, iters: int, si
     otherwise the damping rises; so the loss never rises and every scene is independent of the
     others in the batch."""
     M, n, _ = pose.shape
-    eps = torch.full((6,), LM_EPS, dtype=pose.dtype, device=pose.device)
+    nudges = torch.eye(6, dtype=pose.dtype, device=pose.device) * LM_EPS  # one number each
     singles = G.render_poses(pose, size, template)  # (M, n, s, s)
     current = _pyramid_features(singles.amax(1, keepdim=True))
     residual = current - target_features
@@ -206,7 +206,7 @@ def _lm_fit(G, pose: torch.Tensor, target_features: torch.Tensor, iters: int, si
                 others = torch.where(top_idx[:, 0] == k, top2[:, 1], top2[:, 0])
             else:
                 others = torch.full_like(singles[:, 0], -1.0)
-            moved = pose[:, k, None, :] + torch.diag(eps)  # (M, 6, 6): each number nudged
+            moved = pose[:, k, None, :] + nudges  # (M, 6, 6): each number nudged
             r = G.render_poses(moved, size, template)  # (M, 6, s, s)
             comp = torch.maximum(r, others[:, None]).reshape(M * 6, 1, size, size)
             J.append((_pyramid_features(comp).reshape(M, 6, -1) - current[:, None]) / LM_EPS)

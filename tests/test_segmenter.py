@@ -145,9 +145,9 @@ def test_bad_frames_are_counted_and_skipped_and_the_node_keeps_serving(tmp):
     frames = {k: np.array([f[k] for f in frames], dtype=object if k == "data" else None)
               for k in frames[0]}
     ns = "/seg_bad"
-    # without refinement: the probe sends the next frame once the last is answered or skipped,
-    # and at the shipped ~0.5 s a frame a resent first frame can still be in work when the next
-    # arrives, so that keep-last 1 drops one and the counts below no longer add up exactly
+    # without refinement: the probe sends a frame every 0.3 s, and at the shipped ~0.5 s a
+    # frame one can arrive while the node is still at work on the last, so that keep-last 1
+    # drops one and the counts below no longer add up exactly
     seg = start_segmenter(ns, "diagnostics_period:=0.5", "refine_steps:=0")
     proc, out = probe(tmp, ns, 3, 90, frames)
     try:
