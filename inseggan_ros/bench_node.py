@@ -20,6 +20,7 @@ import os
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -46,9 +47,35 @@ def simulated_frames(count: int, width: int, height: int) -> list[np.ndarray]:
                 for k in range(count)]
 
 
-def in_process_reference(frames, model_path: str, refine_steps: int | None = None,
-                         hypotheses: int | None = None, repeats: int = 3,
-                         smooth_iters: int | None = None) -> dict:
+# The segmenter's test-time parameters the benchmark can set (`--params-file`, flags).
+SETTINGS = ("refine_steps", "refine_hypotheses", "refine_keep", "smooth_iters",
+            "smooth_full_res_iters")
+
+
+def read_params_file(path) -> dict:
+    """The segmenter's parameters in a ROS 2 parameters file (`segmenter:` or `/**:` section)."""
+    import yaml
+
+    doc = yaml.safe_load(Path(path).read_text()) or {}
+    out = {}
+    for node in ("/**", "segmenter", "/segmenter"):
+        out.update((doc.get(node) or {}).get("ros__parameters", {}))
+    return out
+
+
+def settings_from_params(model, params: dict):
+    """The model's `InferenceConfig` with the node parameters in `params` applied, as the node
+    applies them."""
+    from dataclasses import replace
+
+    cfg = model.inference
+    return replace(cfg, refine_steps=int(params.get("refine_steps", cfg.refine_steps)),
+                   hypotheses=int(params.get("refine_hypotheses", cfg.hypotheses)),
+                   keep=int(params.get("refine_keep", cfg.keep))).with_smoothing(
+        params.get("smooth_iters"), params.get("smooth_full_res_iters"))
+
+
+def in_process_reference(frames, model_path: str, params: dict, repeats: int = 3) -> dict:
     """Inference alone and conversion alone, in this process (one thread), for comparison."""
     import torch
 
@@ -60,6 +87,7 @@ def in_process_reference(frames, model_path: str, refine_steps: int | None = Non
 
     torch.set_num_threads(1)
     seg = Segmenter.from_checkpoint(resolve_model(model_path), device="cpu")
+    settings = settings_from_params(seg, params)
     prep = node_defaults(seg.prep_cfg, depth_to_metres(frames[0], "16UC1"))
     infer_ms, conv_ms = [], []
     for _ in range(repeats):
@@ -68,14 +96,14 @@ def in_process_reference(frames, model_path: str, refine_steps: int | None = Non
             t0 = time.perf_counter()
             depth = conversions.depth_to_metres(msg)
             t1 = time.perf_counter()
-            out = seg(depth, prep, reconstruction=False, refine_steps=refine_steps,
-                      hypotheses=hypotheses, smooth_iters=smooth_iters)
+            out = seg(depth, prep, reconstruction=False, settings=settings)
             t2 = time.perf_counter()
             conversions.numpy_to_image(out.labels, "mono8", msg.header)
             t3 = time.perf_counter()
             infer_ms.append((t2 - t1) * 1e3)
             conv_ms.append((t1 - t0 + t3 - t2) * 1e3)
-    return {"inference_ms": np.array(infer_ms), "conversion_ms": np.array(conv_ms)}
+    return {"inference_ms": np.array(infer_ms), "conversion_ms": np.array(conv_ms),
+            "settings": settings}
 
 
 def main(argv=None) -> int:
@@ -86,16 +114,23 @@ def main(argv=None) -> int:
     ap.add_argument("--height", type=int, default=720)
     ap.add_argument("--model", default="", help="segmenter model_path ('' = shipped default)")
     ap.add_argument("--distinct-frames", type=int, default=8)
-    ap.add_argument("--refine-steps", type=int, help="segmenter refine_steps (default: the model's)")
-    ap.add_argument("--hypotheses", type=int,
-                    help="segmenter refine_hypotheses (default: the model's)")
-    ap.add_argument("--smooth-iters", type=int,
-                    help="segmenter smooth_iters (default: the model's)")
+    ap.add_argument("--params-file", type=Path,
+                    help="ROS 2 parameters file for the segmenter (e.g. config/quality.yaml)")
+    ap.add_argument("--refine-steps", type=int, help="segmenter refine_steps")
+    ap.add_argument("--hypotheses", type=int, help="segmenter refine_hypotheses")
+    ap.add_argument("--keep", type=int, help="segmenter refine_keep")
+    ap.add_argument("--smooth-iters", type=int, help="segmenter smooth_iters")
+    ap.add_argument("--full-res-smooth-iters", type=int, help="segmenter smooth_full_res_iters")
     ap.add_argument("--default-transport", action="store_true",
                     help="Fast DDS's built-in transports instead of the shipped large-frames "
                          "profile (config/fastdds_large_frames.xml)")
     args = ap.parse_args(argv)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    params = read_params_file(args.params_file) if args.params_file else {}
+    for name, flag in zip(SETTINGS, ("refine_steps", "hypotheses", "keep", "smooth_iters",
+                                     "full_res_smooth_iters")):
+        if getattr(args, flag) is not None:
+            params[name] = getattr(args, flag)
     from .dds import PROFILE_VARIABLES, use_large_frames_profile
 
     if args.default_transport:
@@ -119,9 +154,8 @@ def main(argv=None) -> int:
 
     frames = simulated_frames(args.distinct_frames, args.width, args.height)
     try:
-        ref = in_process_reference(frames, args.model, args.refine_steps, args.hypotheses,
-                                   smooth_iters=args.smooth_iters)
-    except (CheckpointError, ConfigError) as e:
+        ref = in_process_reference(frames, args.model, params)
+    except (CheckpointError, ConfigError, ValueError) as e:
         print(f"bench-node: error: {e}", file=sys.stderr)
         return 2
 
@@ -135,12 +169,12 @@ def main(argv=None) -> int:
         lambda m: answered.__setitem__(conversions.stamp_to_ns(m.header.stamp), time.time_ns()), 10)
     node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
     model = ["-p", f"model_path:={args.model}"] if args.model else []
-    if args.refine_steps is not None:
-        model += ["-p", f"refine_steps:={args.refine_steps}"]
-    if args.hypotheses is not None:
-        model += ["-p", f"refine_hypotheses:={args.hypotheses}"]
-    if args.smooth_iters is not None:
-        model += ["-p", f"smooth_iters:={args.smooth_iters}"]
+    if args.params_file:
+        model += ["--params-file", str(args.params_file)]
+    for name, flag in zip(SETTINGS, ("refine_steps", "hypotheses", "keep", "smooth_iters",
+                                     "full_res_smooth_iters")):
+        if getattr(args, flag) is not None:
+            model += ["-p", f"{name}:={getattr(args, flag)}"]
     seg = subprocess.Popen([_executable("segmenter"), "--ros-args", *model,
                             "-p", "latency_window:=100000",
                             "-r", "depth:=camera/depth/image_rect_raw"],
@@ -190,10 +224,14 @@ def main(argv=None) -> int:
     got = [s for s in sent if s in answered]
     e2e = np.array([(answered[s] - s) / 1e6 for s in got])
     received = int(last.get("frames_received", 0)) - int((base or {}).get("frames_received", 0))
-    steps = "the model's" if args.refine_steps is None else args.refine_steps
+    cfg = ref["settings"]
     print(f"\nsegmenter node, {args.width}x{args.height} 16UC1 at {args.rate:.0f} Hz for "
           f"{args.seconds:.0f} s (model {last.get('model', '?')}, {last.get('device', '?')}, "
-          f"refine_steps {steps}, Fast DDS: {profile})")
+          f"Fast DDS: {profile})")
+    print(f"  settings: {cfg.refine_steps} refinement iterations, {cfg.hypotheses} starting "
+          f"points ({cfg.keep or 'all'} refined), smoothing {cfg.smooth.iters} + "
+          f"{cfg.smooth.full_res_iters if cfg.smooth.iters else 0} at full resolution"
+          + (f" (params file {args.params_file})" if args.params_file else ""))
     print(f"  frames: sent {len(sent)}, answered {len(got)} ({100 * len(got) / max(len(sent), 1):.1f} %),"
           f" dropped {len(sent) - len(got)} (node received about {received}; skipped "
           f"{last.get('frames_skipped', '?')})")

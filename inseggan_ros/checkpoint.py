@@ -73,7 +73,7 @@ def pick_device(device: str = "auto") -> str:
 
 def load_for_inference(path, device: str = "auto", tau: float | None = None):
     from .preprocess import PreprocessConfig
-    from .segment import Segmenter, SmoothConfig
+    from .segment import InferenceConfig, Segmenter
 
     state = load(path)
     cfg, G, E = build_models(state, path)
@@ -81,15 +81,12 @@ def load_for_inference(path, device: str = "auto", tau: float | None = None):
         prep = PreprocessConfig.from_dict(state["preprocess_config"])
     except (KeyError, TypeError, ValueError) as e:
         raise CheckpointError(f"{path}: bad preprocessing config ({e})") from None
-    inference = state.get("inference", {})
-    try:  # models exported before label smoothing existed: off
-        smooth = SmoothConfig(**inference.get("smooth", {"iters": 0}))
+    try:  # models exported before label smoothing or `keep` existed: off, all
+        inference = InferenceConfig.from_dict(state.get("inference", {}))
     except (TypeError, ValueError) as e:
-        raise CheckpointError(f"{path}: bad label-smoothing settings ({e})") from None
+        raise CheckpointError(f"{path}: bad inference settings ({e})") from None
     return Segmenter(G, E, cfg, prep, float(state.get("tau", -0.5) if tau is None else tau),
-                     device=pick_device(device),
-                     refine_steps=int(inference.get("refine_steps", 0)),
-                     hypotheses=int(inference.get("hypotheses", 1)), smooth=smooth)
+                     device=pick_device(device), inference=inference)
 
 
 def export_for_inference(src, dst, half: bool = False) -> Path:

@@ -159,6 +159,28 @@ def cmd_train(args) -> int:
     return 0
 
 
+def cmd_distill(args) -> int:
+    from . import data as data_mod
+    from .distill import DistillConfig, distill
+
+    cfg = DistillConfig(frames=args.frames, refine_steps=args.refine_steps,
+                        hypotheses=args.hypotheses, iterations=args.iterations,
+                        eval_every=args.eval_every, lr=args.lr, seed=args.seed)
+    train = data_mod.load_sim_split(args.data, "train", limit=cfg.frames, progress=not args.quiet)
+    val = data_mod.load_sim_split(args.data, "val", limit=cfg.eval_frames)
+    t0 = time.perf_counter()
+    summary = distill(args.checkpoint, train["x"], val, args.out, cfg, resume=args.resume,
+                      progress=not args.quiet)
+    vals = summary["val"]
+    key = "miou" if vals and "miou" in vals[0] else "recon_l1"
+    print(f"distilled {summary['iterations']} iterations on {summary['pseudo_label_frames']} "
+          f"pseudo-labelled frames in {(time.perf_counter() - t0) / 60:.1f} min; validation "
+          f"{key} without refinement: {vals[0][key]:.4f} -> best {summary['best_score']:.4f}"
+          if vals else f"distilled {summary['iterations']} iterations")
+    print(f"checkpoints: {args.out}/best.pt, {args.out}/last.pt; curves: {args.out}/curves.png")
+    return 0
+
+
 def cmd_eval(args) -> int:
     from . import data as data_mod
     from . import evaluate
@@ -170,16 +192,12 @@ def cmd_eval(args) -> int:
         raise ValueError(f"--threads {args.threads} invalid; valid: >= 1")
     torch.set_num_threads(args.threads)
     seg = load_for_inference(args.model, device=args.device)
-    if args.refine_steps is not None:
-        if args.refine_steps < 0:
-            raise ValueError(f"--refine-steps {args.refine_steps} invalid; valid: >= 0")
-        seg.refine_steps = args.refine_steps
-    if args.hypotheses is not None:
-        if args.hypotheses < 1:
-            raise ValueError(f"--hypotheses {args.hypotheses} invalid; valid: >= 1")
-        seg.hypotheses = args.hypotheses
-    if args.smooth_iters is not None:
-        seg.smooth = replace(seg.smooth, iters=args.smooth_iters)  # validates: >= 0
+    cfg = seg.inference
+    for flag, name in (("refine_steps", "refine_steps"), ("hypotheses", "hypotheses"),
+                       ("keep", "keep")):
+        if getattr(args, flag) is not None:
+            cfg = replace(cfg, **{name: getattr(args, flag)})  # validates, naming the setting
+    seg.inference = cfg.with_smoothing(args.smooth_iters, args.full_res_smooth_iters)
     n = seg.model_cfg.n_instances
     if args.data:
         d = data_mod.load_sim_split(args.data, args.split, seg.prep_cfg, limit=args.frames)
@@ -193,16 +211,16 @@ def cmd_eval(args) -> int:
     results = evaluate.run_methods(d, n, seg, methods, progress=not args.quiet)
     summary = evaluate.summarise(results, len(d["x"]))
     summary.update({"model": str(args.model), "data": source, "tau": seg.tau,
-                    "refine_steps": seg.refine_steps, "hypotheses": seg.hypotheses,
-                    "smooth_iters": seg.smooth.iters})
+                    **seg.inference.to_dict(), "smooth_iters": seg.inference.smooth.iters})
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     evaluate.write_json(out / "results.json", summary)
     evaluate.qualitative_png(out / "qualitative.png", d, results)
     print(f"{source}: {summary['frames']} frames, {summary['hard_frames']} hard "
           f"({summary['hard_rule']}); model {args.model}, tau {seg.tau:.2f}, "
-          f"{seg.refine_steps} refinement steps x {seg.hypotheses} starts, "
-          f"{seg.smooth.iters} smoothing iterations")
+          f"{seg.inference.refine_steps} refinement steps x {seg.inference.hypotheses} starts"
+          + (f" (best {seg.inference.keep} refined)" if seg.inference.keep else "")
+          + f", {seg.inference.smooth.iters} smoothing iterations")
     print(evaluate.format_table(summary))
     print(f"wrote {out / 'results.json'} and {out / 'qualitative.png'}")
     return 0
@@ -217,7 +235,8 @@ def cmd_export(args) -> int:
                         half=not args.no_half,
                         frames=args.frames, notes=args.config_name or "",
                         sample_bag=args.sample_bag, also_refine=args.also_refine,
-                        smooth_iters=args.smooth_iters)
+                        smooth_iters=args.smooth_iters, keep=args.keep,
+                        full_res_iters=args.full_res_smooth_iters)
     print(f"exported {args.name}: tau {card['tau']:.3f}, {card['precision']}, refine steps "
           f"{card['refine_steps']} x {card['hypotheses']} hypotheses; test split:")
     print(format_table(card["test"]))
@@ -323,6 +342,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="starting points of test-time refinement (multi-start, default 1)")
     p.add_argument("--smooth-iters", type=int, default=0,
                    help="depth-aware label smoothing iterations (segment.SmoothConfig; 0 = off)")
+    p.add_argument("--keep", type=int, default=0,
+                   help="of the starting points, refine the best-fitting KEEP (default 0: all)")
+    p.add_argument("--full-res-smooth-iters", type=int, default=10,
+                   help="smoothing iterations at the input's resolution (default 10)")
     p.add_argument("--no-half", action="store_true", help="keep float32 weights")
     p.add_argument("--frames", type=int, default=200)
     p.add_argument("--config-name", help="the named training config, for the card")
@@ -389,6 +412,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_train)
 
+    p = sub.add_parser("distill", help="fine-tune a model's encoder on its own refined poses")
+    p.add_argument("--checkpoint", type=Path, required=True, help="training checkpoint (best.pt)")
+    p.add_argument("--data", type=Path, required=True, help="its simulated data set")
+    p.add_argument("--out", type=Path, required=True, help="run directory")
+    p.add_argument("--frames", type=int, default=4000, help="pseudo-labelled frames (4000)")
+    p.add_argument("--refine-steps", type=int, default=24,
+                   help="pseudo-labels: refinement iterations (24) ...")
+    p.add_argument("--hypotheses", type=int, default=8, help="... from this many starts (8)")
+    p.add_argument("--iterations", type=int, default=6000, help="encoder iterations (6000)")
+    p.add_argument("--eval-every", type=int, default=500)
+    p.add_argument("--lr", type=float, default=3e-4)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=cmd_distill)
+
     p = sub.add_parser("eval", help="InSeGAN vs classical baselines (mIoU table, PNG)")
     p.add_argument("--model", type=Path, required=True)
     src = p.add_mutually_exclusive_group(required=True)
@@ -404,6 +443,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--hypotheses", type=int, help="refinement starting points (default: the model's)")
     p.add_argument("--smooth-iters", type=int,
                    help="label smoothing iterations (default: the model's; 0 = off)")
+    p.add_argument("--keep", type=int,
+                   help="starting points refined, the best-fitting first (default: the model's)")
+    p.add_argument("--full-res-smooth-iters", type=int,
+                   help="smoothing iterations at the input's resolution (default: the model's)")
     p.add_argument("--device", default="auto")
     p.add_argument("--threads", type=int, default=1,
                    help="CPU threads for inference (default 1, as the model cards and the node; "

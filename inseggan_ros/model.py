@@ -104,6 +104,30 @@ def pose_matrix(p: torch.Tensor) -> torch.Tensor:
     return torch.cat([rodrigues(p[:, :3]), p[:, 3:, None]], dim=2)
 
 
+def pose_features(theta: torch.Tensor) -> torch.Tensor:
+    """(M, 3, 4) [R | t] of rod templates -> (M, 9): translation and the axis (template x in
+    the world) up to sign, as the 6 distinct entries of a a^T: all that a render depends on."""
+    a = theta[:, :, 0]
+    i, j = torch.triu_indices(3, 3)
+    return torch.cat([theta[:, :, 3], (a[:, :, None] * a[:, None, :])[:, i, j]], dim=1)
+
+
+def pose_from_axis(axis: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """(..., 3) unit axes and (..., 3) translations -> (..., 6) poses whose rotation is the
+    shortest one taking the template's x axis onto `axis` (for templates that are solids of
+    revolution about x, every rotation with that axis renders the same)."""
+    ex = torch.zeros_like(axis)
+    ex[..., 0] = 1
+    w = torch.cross(ex, axis, dim=-1)
+    s = w.norm(dim=-1, keepdim=True)
+    angle = torch.atan2(s, axis[..., :1])
+    half_turn = torch.zeros_like(axis)
+    half_turn[..., 2] = torch.pi  # axis = -x: any half turn about an axis normal to x
+    w = torch.where(s > 1e-7, w / s.clamp_min(1e-12) * angle,
+                    torch.where(axis[..., :1] > 0, torch.zeros_like(axis), half_turn))
+    return torch.cat([w, t], -1)
+
+
 def pose_decoder(d: int) -> nn.Sequential:
     """MLP code -> 6 pose numbers: d -> d/2 -> d/4 -> 6 as the paper (d = 128), LeakyReLU, no
     bias; at least 64 -> 32 hidden units for small codes."""
@@ -333,11 +357,7 @@ class SphereGenerator(Generator):
         6 pose numbers, so most of z cannot be recovered from an image: comparing the codes
         themselves leaves L_a stuck near 1 (measured), comparing these does not."""
         B, n, d = z.shape
-        theta = self.poses(z.reshape(B * n, d))
-        a = theta[:, :, 0]  # the rod's axis (template x) in the world
-        i, j = torch.triu_indices(3, 3)
-        outer = (a[:, :, None] * a[:, None, :])[:, i, j]
-        return torch.cat([theta[:, :, 3], outer], dim=1).reshape(B, n, 9)
+        return pose_features(self.poses(z.reshape(B * n, d))).reshape(B, n, 9)
 
     def render_instances(self, z: torch.Tensor, size: int | None = None) -> torch.Tensor:
         """(B, n, d) -> (B, n, size, size) single-instance renders (default: image_size; a
@@ -351,19 +371,32 @@ class SphereGenerator(Generator):
         -> (B, n, size, size) single-instance renders. `template`: `spheres()` computed
         beforehand (test-time refinement, where the template does not change)."""
         B, n = pose.shape[:2]
-        p = pose.reshape(B * n, 6)
-        theta = pose_matrix(p)  # (M, 3, 4)
+        axis = rodrigues(pose.reshape(B * n, 6)[:, :3])[:, :, 0].reshape(B, n, 3)
+        return self.render_axes(axis, pose[..., 3:], size, template)
+
+    def pixel_grid(self, size: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """-> pixel centres x (1, 1, 1, size) and y (1, 1, size, 1) in [-1, 1]."""
+        if size is None or size == self.cfg.image_size:
+            return self.px, self.py
+        g = (torch.arange(size, device=self.px.device, dtype=self.px.dtype) + 0.5) / size * 2 - 1
+        return g.view(1, 1, 1, size), g.view(1, 1, size, 1)
+
+    def render_axes(self, axis: torch.Tensor, t: torch.Tensor, size: int | None = None,
+                    template: tuple[torch.Tensor, torch.Tensor] | None = None,
+                    grid: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+        """The renderer itself: (B, n, 3) unit axes of the rods (the template's x axis in the
+        world) and (B, n, 3) translations -> (B, n, size, size) renders. The template is a solid
+        of revolution about that axis, so a rotation about it changes nothing and the axis is
+        all of the rotation that a render depends on. `grid`: `pixel_grid(size)`."""
+        B, n = axis.shape[:2]
         centres, radii = self.spheres() if template is None else template
-        c = centres @ theta[:, :, :3].transpose(1, 2) + theta[:, None, :, 3]  # (M, K, 3)
+        c = centres[:, 0, None] * axis.reshape(B * n, 1, 3) + t.reshape(B * n, 1, 3)  # (M, K, 3)
         r = radii.view(1, -1, 1, 1)
         cz = c[..., 2] + self.lift  # (M, K)
         if self.cfg.floor_contact:  # lowest point of the instance at or above the floor
             cz = cz + (radii - cz).amax(dim=1, keepdim=True).clamp_min(0)
         cx, cy, cz = c[..., 0, None, None], c[..., 1, None, None], cz[..., None, None]
-        px, py = self.px, self.py
-        if size is not None and size != self.cfg.image_size:
-            g = (torch.arange(size, device=pose.device, dtype=px.dtype) + 0.5) / size * 2 - 1
-            px, py = g.view(1, 1, 1, size), g.view(1, 1, size, 1)
+        px, py = self.pixel_grid(size) if grid is None else grid
         inside = r ** 2 - (px - cx) ** 2 - (py - cy) ** 2  # (M, K, H, W)
         pixel = 2.0 / px.shape[-1]
         cover = torch.sigmoid(inside / (2 * r * pixel))

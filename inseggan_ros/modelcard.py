@@ -37,39 +37,39 @@ def _val_miou(seg, val: dict) -> float:
 def export_model(checkpoint_path, data_root, name: str, out_dir, refine_steps: int = 0,
                  hypotheses: int = 1, half: bool = True, frames: int = 200, notes: str = "",
                  sample_bag: str | None = None, also_refine: int | None = None,
-                 smooth_iters: int = 0) -> dict:
-    from dataclasses import asdict
+                 smooth_iters: int = 0, keep: int = 0, full_res_iters: int = 10) -> dict:
+    from dataclasses import replace
 
     import torch
 
     from . import checkpoint as ckpt
     from . import data as data_mod
     from . import evaluate
-    from .segment import SmoothConfig, calibrate_tau, infer
+    from .segment import InferenceConfig, SmoothConfig, calibrate_tau, infer
 
     torch.set_num_threads(1)  # as the card says, and as the node runs by default: the pick
     # among refinement starts can tip with another thread count's rounding
     state = ckpt.load(checkpoint_path)
     seg = ckpt.load_for_inference(checkpoint_path, device="cpu")
-    seg.refine_steps, seg.hypotheses = refine_steps, hypotheses
-    seg.smooth = SmoothConfig(iters=smooth_iters)
+    seg.inference = InferenceConfig(refine_steps, hypotheses, keep,
+                                    SmoothConfig(iters=smooth_iters, full_res_iters=full_res_iters))
     val = data_mod.load_sim_split(data_root, "val", seg.prep_cfg, limit=frames)
     test = data_mod.load_sim_split(data_root, "test", seg.prep_cfg, limit=frames)
 
     # 1. tau with the shipped inference settings (on the z-buffered labels, before smoothing)
     x = torch.from_numpy(val["x"])
     renders = torch.cat([infer(seg.G, seg.E, x[i:i + 50], refine_steps=refine_steps,
-                               hypotheses=hypotheses)["renders"]
+                               hypotheses=hypotheses, keep=keep or None)["renders"]
                          for i in range(0, len(x), 50)])
     tau, scores = calibrate_tau(renders, torch.from_numpy(val["fg"]), val["labels"])
     seg.tau = tau
-    val_full = _val_miou(seg, val) if seg.smooth.iters else scores[tau]  # as shipped
+    val_full = _val_miou(seg, val) if seg.inference.smooth.iters else scores[tau]  # as shipped
 
     # 2. half precision only if it costs nothing measurable
-    keep = {k: v for k, v in state.items() if k not in ("discriminator", "optimizers", "rng", "format")}
+    keep = {k: v for k, v in state.items()
+            if k not in ("discriminator", "optimizers", "rng", "format", "distill")}
     keep["tau"] = tau
-    keep["inference"] = {"refine_steps": int(refine_steps), "hypotheses": int(hypotheses),
-                         "smooth": asdict(seg.smooth)}
+    keep["inference"] = seg.inference.to_dict()
     precision, val_half = "float32", None
     if half:
         G16 = {k: v.half().float() if v.is_floating_point() else v for k, v in keep["generator"].items()}
@@ -90,11 +90,11 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, refine_steps: i
     # refinement than it ships with: better labels, slower frames)
     results = evaluate.run_methods(test, seg.model_cfg.n_instances, seg, progress=True)
     if also_refine is not None and also_refine != refine_steps:
-        shipped = seg.refine_steps
-        seg.refine_steps = also_refine
+        shipped = seg.inference
+        seg.inference = replace(shipped, refine_steps=also_refine)
         extra = evaluate.run_methods(test, seg.model_cfg.n_instances, seg, methods=[],
                                      progress=False)["inseggan"]
-        seg.refine_steps = shipped
+        seg.inference = shipped
         results = {"inseggan": results.pop("inseggan"),
                    f"inseggan_refine{also_refine}": extra, **results}
     summary = evaluate.summarise(results, len(test["x"]))
@@ -112,7 +112,9 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, refine_steps: i
         "wall_minutes": round(state["elapsed_seconds"] / 60, 1),
         "hardware": f"{platform.machine()} CPU, {os.cpu_count()} cores (torch threads: 1)",
         "tau": tau, "refine_steps": int(refine_steps), "hypotheses": int(hypotheses),
-        "smooth_iters": int(smooth_iters),
+        "smooth_iters": int(smooth_iters), "keep": int(keep),
+        "full_res_smooth_iters": int(full_res_iters) if smooth_iters else 0,
+        "distillation": _distill_record(state),
         "precision": precision,
         "sample_bag": sample_bag, "sample_bag_scores": bag_scores,
         "val_miou": {"float32": val_full, "float16": val_half},
@@ -181,6 +183,18 @@ def full_resolution_scores(seg, bag_path) -> dict:
             "kmeans": float(mean_miou(miou_batch(np.stack(km), gt)))}
 
 
+def _distill_line(card: dict) -> list[str]:
+    d = card.get("distillation")
+    if not d:
+        return []
+    c, v = d["config"], d["val_miou_no_refinement"]
+    before = f"{v['before']:.3f} -> " if v["before"] is not None else ""
+    return [f"* **Encoder distilled** (`inseggan distill`) on its own refined poses of "
+            f"{c['frames']} training frames ({c['refine_steps']} iterations x {c['hypotheses']} "
+            f"starts): {d['iterations']} iterations, {d['wall_minutes']} min; validation mIoU "
+            f"without refinement {before}{v['best']:.3f}"]
+
+
 def _bag_line(card: dict) -> list[str]:
     b = card.get("sample_bag_scores")
     if not b:
@@ -190,6 +204,18 @@ def _bag_line(card: dict) -> list[str]:
             f"InSeGAN {b['inseggan']:.3f}, K-Means {b['kmeans']:.3f} at 64 x 64"
             + (f"; at the bag's full resolution (the segmenter node's output) InSeGAN "
                f"{full['inseggan']:.3f}, K-Means {full['kmeans']:.3f}" if full else "") + ".", ""]
+
+
+def _distill_record(state: dict) -> dict | None:
+    """What `inseggan distill` did to the encoder of this checkpoint, if anything."""
+    d = state.get("distill")
+    if not d:
+        return None
+    val = [h for h in d["history"] if h["kind"] == "val"]
+    return {"config": d["config"], "iterations": d["iteration"],
+            "wall_minutes": round(d["seconds"] / 60, 1),
+            "val_miou_no_refinement": {"before": val[0].get("miou") if val else None,
+                                       "best": d["best"]}}
 
 
 def card_markdown(card: dict) -> str:
@@ -210,9 +236,12 @@ def card_markdown(card: dict) -> str:
         f"latent {m['latent_dim']}, coord_conv {m.get('coord_conv', False)}",
         f"* **Training:** {card['iterations']} iterations, {card['wall_minutes']} min wall time, "
         f"{card['hardware']}, batch {card['train_config']['batch_size']}",
+        *_distill_line(card),
         f"* **Inference:** tau {card['tau']:.3f} (calibrated on the 200 validation scenes), "
         f"{card['refine_steps']} test-time refinement steps from {card.get('hypotheses', 1)} "
-        f"starting point(s), {card.get('smooth_iters', 0)} label-smoothing iterations, "
+        f"starting point(s)"
+        + (f" (the best-fitting {card['keep']} refined)" if card.get("keep") else "")
+        + f", {card.get('smooth_iters', 0)} label-smoothing iterations, "
         f"weights in {card['precision']} "
         f"(validation mIoU float32 {card['val_miou']['float32']:.4f}"
         + (f", float16 {card['val_miou']['float16']:.4f}" if card['val_miou']['float16'] is not None else "")

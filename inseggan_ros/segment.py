@@ -13,7 +13,7 @@ tau is calibrated on validation data and stored in the checkpoint (no per-object
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 import torch
@@ -144,26 +144,33 @@ def start_poses(G, E, x: torch.Tensor, hypotheses: int = 1, z: torch.Tensor | No
     if hypotheses < 1:
         raise ValueError(f"hypotheses must be >= 1, got {hypotheses}")
     B = len(x)
-    starts = []
-    for flip_x, flip_y in MIRRORS[:hypotheses]:
-        dims = [d for d, f in ((3, flip_x), (2, flip_y)) if f]
-        codes = z if (z is not None and not dims) else E(torch.flip(x, dims) if dims else x)
-        pose = G.pose(codes.reshape(-1, codes.shape[-1])).reshape(B, codes.shape[1], 6)
-        starts.append(_mirror_poses(pose, flip_x, flip_y))
-    pose = torch.stack(starts, 1)
-    extra = hypotheses - len(starts)
+    mirrors = MIRRORS[:hypotheses]
+    inputs = [torch.flip(x, [d for d, f in ((3, fx), (2, fy)) if f]) for fx, fy in mirrors]
+    if z is not None:
+        inputs = inputs[1:]
+    codes = E(torch.cat(inputs)) if inputs else z  # one encoder pass for every mirror
+    if z is not None:
+        codes = torch.cat([z, codes]) if inputs else z
+    pose = G.pose(codes.reshape(-1, codes.shape[-1])).reshape(len(mirrors), B, codes.shape[1], 6)
+    pose = torch.stack([_mirror_poses(pose[i], fx, fy) for i, (fx, fy) in enumerate(mirrors)], 1)
+    extra = hypotheses - len(mirrors)
     if extra > 0:
         gen = torch.Generator().manual_seed(0)
-        base = pose[:, torch.arange(extra) % len(starts)]
+        base = pose[:, torch.arange(extra) % len(mirrors)]
         jitter = torch.randn(base.shape, generator=gen) * torch.tensor(HYPOTHESIS_JITTER)
         pose = torch.cat([pose, base + jitter.to(pose)], 1)
     return pose
 
 
-# Levenberg-Marquardt refinement: finite-difference steps per pose number (axis-angle radians,
-# translation in image half-widths), and the floor of the IRLS weights 1 / |residual| (L1 fit).
+# Levenberg-Marquardt refinement. An instance's unknowns: its translation (x, y, height) and
+# the direction of its axis, turned about the vertical (yaw) or tilted out of the floor plane
+# (elevation); the templates are solids of revolution about that axis, so nothing else of the
+# rotation shows. Jacobian columns: x, y and yaw from the render's own image gradient (they move
+# the render rigidly); height and elevation by finite differences of LM_EPS. The IRLS weights
+# 1 / |residual| (an L1 fit) are floored at LM_IRLS_FLOOR.
 LM_EPS = 0.01
 LM_IRLS_FLOOR = 0.02
+LM_DAMPING, LM_DOWN, LM_DAMPING_MIN = 1e-2, 0.3, 1e-4
 LM_CHUNK = 32  # scenes (frames x hypotheses) per batch of perturbed renders: bounds memory
 
 
@@ -179,107 +186,172 @@ def _pyramid_features(img: torch.Tensor, levels: int = 3) -> torch.Tensor:
     return torch.cat(out, 1)
 
 
+def _rotate(v: torch.Tensor, k: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
+    """Vectors v (..., 3) turned about unit axes k (..., 3) by `angle` (...) (Rodrigues)."""
+    c, s = torch.cos(angle)[..., None], torch.sin(angle)[..., None]
+    return v * c + torch.cross(k, v, dim=-1) * s + k * (k * v).sum(-1, keepdim=True) * (1 - c)
+
+
+def _tilt_axes(axis: torch.Tensor) -> torch.Tensor:
+    """The horizontal unit vectors normal to `axis` (..., 3): turning about one tilts the axis
+    out of the floor plane. For a vertical axis, x."""
+    k = torch.stack([-axis[..., 1], axis[..., 0], torch.zeros_like(axis[..., 0])], -1)
+    norm = k.norm(dim=-1, keepdim=True)
+    x = torch.zeros_like(axis)
+    x[..., 0] = 1
+    return torch.where(norm > 1e-6, k / norm.clamp_min(1e-12), x)
+
+
+def _others(singles: torch.Tensor) -> torch.Tensor:
+    """(M, n, s, s) renders -> for each instance, the z-buffer of all the others."""
+    M, n = singles.shape[:2]
+    if n == 1:
+        return torch.full_like(singles, -1.0)
+    top2, top_idx = singles.topk(2, dim=1)
+    k = torch.arange(n, device=singles.device).view(1, n, 1, 1)
+    return torch.where(top_idx[:, :1] == k, top2[:, 1:], top2[:, :1])
+
+
 @torch.no_grad()
 def _lm_fit(G, pose: torch.Tensor, target_features: torch.Tensor, iters: int, size: int,
             template) -> torch.Tensor:
     """`iters` Levenberg-Marquardt iterations on (M, n, 6) poses, each scene on its own,
     minimising sum |zbuffer(renders) - target| over `_pyramid_features` (an L1 fit, by
-    iteratively reweighted least squares).
+    iteratively reweighted least squares). -> (M, n, 6) poses (`pose_from_axis`).
 
-    The Jacobian comes from finite differences, one pose number at a time: an instance's
-    perturbed render is z-buffered with the maximum of the others, so occlusion changes are
-    seen. A step is kept only where it lowers the scene's loss (then the damping falls),
-    otherwise the damping rises; so the loss never rises and every scene is independent of the
-    others in the batch."""
+    Every Jacobian column of an instance is taken where it wins the z-buffer against the
+    others: its analytic columns on the pixels where it is on top, its finite differences
+    z-buffered with the maximum of the others, so occlusion changes are seen. A step is kept
+    only where it lowers the scene's loss (then the damping falls), otherwise the damping
+    rises; so the loss never rises and every scene is independent of the others in the
+    batch."""
+    from .model import pose_from_axis, rodrigues
+
     M, n, _ = pose.shape
-    nudges = torch.eye(6, dtype=pose.dtype, device=pose.device) * LM_EPS  # one number each
-    singles = G.render_poses(pose, size, template)  # (M, n, s, s)
+    axis = rodrigues(pose.reshape(M * n, 6)[:, :3])[:, :, 0].reshape(M, n, 3)
+    t = pose[..., 3:]
+    grid = G.pixel_grid(size)
+    px, py = grid
+    pixel = 2.0 / size
+    up = torch.zeros_like(axis)
+    up[..., 2] = 1
+    lift = up * LM_EPS
+    eps = torch.full(axis.shape[:-1], LM_EPS, dtype=axis.dtype, device=axis.device)
+
+    def render(a, t_):
+        return G.render_axes(a, t_, size, template, grid)
+
+    singles = render(axis, t)  # (M, n, s, s)
     current = _pyramid_features(singles.amax(1, keepdim=True))
     residual = current - target_features
     loss = residual.abs().sum(1)
-    damping = torch.full((M,), 1e-2, dtype=pose.dtype, device=pose.device)
+    damping = torch.full((M,), LM_DAMPING, dtype=pose.dtype, device=pose.device)
     for _ in range(iters):
-        top2, top_idx = singles.topk(2, dim=1) if n > 1 else (None, None)
-        J = []
-        for k in range(n):  # the others' z-buffer without instance k
-            if n > 1:
-                others = torch.where(top_idx[:, 0] == k, top2[:, 1], top2[:, 0])
-            else:
-                others = torch.full_like(singles[:, 0], -1.0)
-            moved = pose[:, k, None, :] + nudges  # (M, 6, 6): each number nudged
-            r = G.render_poses(moved, size, template)  # (M, 6, s, s)
-            comp = torch.maximum(r, others[:, None]).reshape(M * 6, 1, size, size)
-            J.append((_pyramid_features(comp).reshape(M, 6, -1) - current[:, None]) / LM_EPS)
-        J = torch.cat(J, 1)  # (M, 6n, D)
+        others = _others(singles)
+        pad = F.pad(singles, (1, 1, 1, 1), mode="replicate")
+        gx = (pad[..., 1:-1, 2:] - pad[..., 1:-1, :-2]) / (2 * pixel)
+        gy = (pad[..., 2:, 1:-1] - pad[..., :-2, 1:-1]) / (2 * pixel)
+        yaw = gx * (py - t[..., 1, None, None]) - gy * (px - t[..., 0, None, None])
+        rigid = torch.stack([-gx, -gy, yaw], 2) * (singles >= others)[:, :, None]
+        J_rigid = _pyramid_features(rigid.reshape(-1, 1, size, size)).reshape(M, n, 3, -1)
+        tilt = _tilt_axes(axis)
+        moved = render(torch.stack([axis, _rotate(axis, tilt, eps)], 2).reshape(M, 2 * n, 3),
+                       torch.stack([t + lift, t], 2).reshape(M, 2 * n, 3))
+        comp = torch.maximum(moved.reshape(M, n, 2, size, size), others[:, :, None])
+        J_fd = (_pyramid_features(comp.reshape(-1, 1, size, size)).reshape(M, n, 2, -1)
+                - current[:, None, None]) / LM_EPS
+        J = torch.cat([J_rigid, J_fd], 2).reshape(M, 5 * n, -1)  # x, y, yaw, height, elevation
         w = 1 / residual.abs().clamp_min(LM_IRLS_FLOOR)
         Jw = J * w[:, None]
         A = Jw @ J.transpose(1, 2)
         g = (Jw * residual[:, None]).sum(2)
         A = A + torch.diag_embed(damping[:, None] * torch.diagonal(A, dim1=1, dim2=2) + 1e-6)
-        step = torch.linalg.solve(A, -g[..., None])[..., 0].reshape(M, n, 6)
-        new_pose = pose + step
-        new_singles = G.render_poses(new_pose, size, template)
+        step = torch.linalg.solve(A, -g[..., None])[..., 0].reshape(M, n, 5)
+        new_t = t + torch.stack([step[..., 0], step[..., 1], step[..., 3]], -1)
+        new_axis = _rotate(_rotate(axis, tilt, step[..., 4]), up, step[..., 2])
+        new_axis = new_axis / new_axis.norm(dim=-1, keepdim=True)
+        new_singles = render(new_axis, new_t)
         new_current = _pyramid_features(new_singles.amax(1, keepdim=True))
         new_loss = (new_current - target_features).abs().sum(1)
         better = new_loss < loss  # NaN from a singular step is never better
-        pose = torch.where(better[:, None, None], new_pose, pose)
+        axis = torch.where(better[:, None, None], new_axis, axis)
+        t = torch.where(better[:, None, None], new_t, t)
         singles = torch.where(better[:, None, None, None], new_singles, singles)
         current = torch.where(better[:, None], new_current, current)
         residual = current - target_features
         loss = torch.where(better, new_loss, loss)
-        damping = torch.where(better, damping * 0.3, damping * 10).clamp(1e-4, 1e4)
-    return pose
+        damping = torch.where(better, damping * LM_DOWN, damping * 10).clamp(LM_DAMPING_MIN, 1e4)
+    return pose_from_axis(axis, t)
+
+
+def _fit_loss(G, pose: torch.Tensor, target: torch.Tensor, template) -> torch.Tensor:
+    """(B, H, n, 6) poses, (B, 1, s, s) inputs -> (B, H): how badly each hypothesis explains
+    its frame (`pyramid_l1` of the z-buffered renders at the input's size)."""
+    from .losses import pyramid_l1
+
+    B, H, n, _ = pose.shape
+    renders = G.render_poses(pose.reshape(B * H, n, 6), target.shape[-1], template)
+    return pyramid_l1(G.zbuffer(renders), target.repeat_interleave(H, dim=0), 3,
+                      per_frame=True).reshape(B, H)
 
 
 @torch.no_grad()
 def refine_poses(G, pose: torch.Tensor, x: torch.Tensor, steps: int, reseeds: int = 2,
-                 size: int = 32) -> torch.Tensor:
+                 size: int = 32, keep: int | None = None) -> torch.Tensor:
     """Analysis by synthesis at test time, on the poses themselves (generators with explicit
     templates): `steps` Levenberg-Marquardt iterations in all (`_lm_fit`) on the n poses of
     each frame so that the z-buffered composite matches the input at size x size (L1 over a
     3-level pyramid), in `reseeds` + 1 rounds; between rounds the least visible instance is
     moved onto the largest unexplained part of the input (`_reseed`).
 
-    `pose`: (B, H, n, 6) starting points (`start_poses`), refined side by side; each frame
-    keeps the one that fits its input best (`pyramid_l1`, multi-start). Every scene is fitted
-    on its own, so hypothesis 0 follows exactly the path it would follow alone and more
-    hypotheses never fit worse. Levenberg-Marquardt replaced 30 Adam steps (session 5): on 100
-    cylinder validation frames, 4 starts, 12 iterations fit better in less time (mIoU 0.781
-    against 0.770, 89 against 112 ms a frame; docs/experiments.md). -> (B, n, 6) poses."""
-    from .losses import pyramid_l1
-
+    `pose`: (B, H, n, 6) starting points (`start_poses`). `keep` (default: all H) of them,
+    the best-fitting, are refined side by side; each frame then keeps the one that fits its
+    input best (multi-start). Every scene is fitted on its own, so hypothesis 0 follows exactly
+    the path it would follow alone and more hypotheses never fit worse. Choosing the start
+    before refining (`keep` 1) costs one render per start instead of a refinement per start.
+    Levenberg-Marquardt replaced 30 Adam steps (session 5; docs/experiments.md). -> (B, n, 6)
+    poses."""
     B, H, n, _ = pose.shape
-    pose = pose.reshape(B * H, n, 6)
     template = G.spheres()  # fixed while the poses move: computed once
-    target = F.adaptive_avg_pool2d(x, size).repeat_interleave(H, dim=0)
-    features = _pyramid_features(target)
-    rounds = reseeds + 1 if steps >= 2 * (reseeds + 1) else 1
-    for r in range(rounds):
-        iters = steps // rounds + (steps % rounds if r == rounds - 1 else 0)
-        pose = torch.cat([_lm_fit(G, pose[i:i + LM_CHUNK], features[i:i + LM_CHUNK], iters, size,
-                                  template) for i in range(0, len(pose), LM_CHUNK)])
-        if r < rounds - 1:
-            pose = _reseed(G, pose, target, min_pixels=max(4, size * size // 150))
-    if H > 1:
-        loss = pyramid_l1(G.zbuffer(G.render_poses(pose, size, template)), target, 3,
-                          per_frame=True)
-        return pose.reshape(B, H, n, 6)[torch.arange(B), loss.reshape(B, H).argmin(1)]
-    return pose
+    target = F.adaptive_avg_pool2d(x, size)
+    if keep is not None and keep < H:
+        if keep < 1:
+            raise ValueError(f"keep must be >= 1, got {keep}")
+        best = _fit_loss(G, pose, target, template).argsort(1)[:, :keep]
+        pose, H = pose[torch.arange(B)[:, None], best], keep
+    if steps <= 0:
+        flat = pose.reshape(B * H, n, 6)
+    else:
+        features = _pyramid_features(target).repeat_interleave(H, dim=0)
+        flat = pose.reshape(B * H, n, 6)
+        rounds = reseeds + 1 if steps >= 2 * (reseeds + 1) else 1
+        for r in range(rounds):
+            iters = steps // rounds + (steps % rounds if r == rounds - 1 else 0)
+            flat = torch.cat([_lm_fit(G, flat[i:i + LM_CHUNK], features[i:i + LM_CHUNK], iters,
+                                      size, template) for i in range(0, len(flat), LM_CHUNK)])
+            if r < rounds - 1:
+                flat = _reseed(G, flat, target.repeat_interleave(H, dim=0),
+                               min_pixels=max(4, size * size // 150))
+    pose = flat.reshape(B, H, n, 6)
+    if H == 1:
+        return pose[:, 0]
+    return pose[torch.arange(B), _fit_loss(G, pose, target, template).argmin(1)]
 
 
 @torch.no_grad()
 def infer(G, E, x: torch.Tensor, filtered: bool | None = None, refine_steps: int = 0,
-          hypotheses: int = 1) -> dict:
+          hypotheses: int = 1, keep: int | None = None) -> dict:
     """(B, 1, 64, 64) inputs -> codes, single-instance renders (B, n, 64, 64), reconstruction.
 
     `filtered` (default: for the learned renderer only, whose renders are noisy; the explicit
     templates render clean edges that a blur would only soften) median- and Gauss-filters
-    every render, as the reference code does. `refine_steps`, `hypotheses`: test-time
-    refinement (`refine_poses` from `start_poses`; for the learned renderer `refine` on the
-    codes, from the encoder's codes only)."""
+    every render, as the reference code does. `refine_steps`, `hypotheses`, `keep`: test-time
+    refinement (`refine_poses` from `start_poses`, also with 0 steps when there are several
+    starts to choose from; for the learned renderer `refine` on the codes, from the encoder's
+    codes only)."""
     z = E(x)
-    if refine_steps > 0 and hasattr(G, "render_poses"):
-        pose = refine_poses(G, start_poses(G, E, x, hypotheses, z), x, refine_steps)
+    if hasattr(G, "render_poses") and (refine_steps > 0 or hypotheses > 1):
+        pose = refine_poses(G, start_poses(G, E, x, hypotheses, z), x, refine_steps, keep=keep)
         renders = G.render_poses(pose)
         return {"z": z, "pose": pose, "renders": renders,
                 "reconstruction": G.zbuffer(renders)}
@@ -292,7 +364,8 @@ def infer(G, E, x: torch.Tensor, filtered: bool | None = None, refine_steps: int
         B, n, H, W = renders.shape
         r = renders.reshape(B * n, 1, H, W)
         renders = _gauss(_median3(r)).reshape(B, n, H, W)
-    recon = G(z)
+    # the explicit templates' composite is the z-buffer of their renders: no second render
+    recon = G.zbuffer(renders) if hasattr(G, "render_poses") and not filtered else G(z)
     return {"z": z, "renders": renders, "reconstruction": recon}
 
 
@@ -328,15 +401,59 @@ class SmoothConfig:
     sigma_height: float = 0.2
     sigma_px: float = 2.5
     weight: float = 3.0
+    full_res_iters: int = 10  # then at the input's resolution near boundaries (`smooth_full`)
 
     def __post_init__(self):
         for name, ok, valid in (("iters", self.iters >= 0, ">= 0"),
+                                ("full_res_iters", self.full_res_iters >= 0, ">= 0"),
                                 ("radius", self.radius >= 1, ">= 1"),
                                 ("sigma_height", self.sigma_height > 0, "> 0"),
                                 ("sigma_px", self.sigma_px > 0, "> 0"),
                                 ("weight", self.weight >= 0, ">= 0")):
             if not ok:
                 raise ValueError(f"smoothing {name} {getattr(self, name)!r} invalid; valid: {valid}")
+
+
+@dataclass(frozen=True)
+class InferenceConfig:
+    """How a model segments at test time: stored with a shipped model (its card gives the
+    measured quality and time), overridden by the node's parameters or `inseggan eval` flags.
+
+    refine_steps: Levenberg-Marquardt iterations in all (`refine_poses`; 0 = the starting
+    poses as they are); hypotheses: starting points (`start_poses`: the encoder's poses, then
+    those on mirrored inputs, then jittered ones); keep: how many of them, the best-fitting
+    first, are refined (0 = all); smooth: label smoothing (`SmoothConfig`)."""
+    refine_steps: int = 0
+    hypotheses: int = 1
+    keep: int = 0
+    smooth: SmoothConfig = SmoothConfig(iters=0)
+
+    def __post_init__(self):
+        for name, ok, valid in (("refine_steps", self.refine_steps >= 0, ">= 0"),
+                                ("hypotheses", self.hypotheses >= 1, ">= 1"),
+                                ("keep", self.keep >= 0, ">= 0 (0 = all hypotheses)")):
+            if not ok:
+                raise ValueError(f"{name} {getattr(self, name)!r} invalid; valid: {valid}")
+
+    def to_dict(self) -> dict:
+        return {"refine_steps": self.refine_steps, "hypotheses": self.hypotheses,
+                "keep": self.keep, "smooth": asdict(self.smooth)}
+
+    @staticmethod
+    def from_dict(d: dict) -> "InferenceConfig":
+        """From a checkpoint's "inference" record (older ones lack keep and smoothing)."""
+        return InferenceConfig(refine_steps=int(d.get("refine_steps", 0)),
+                               hypotheses=int(d.get("hypotheses", 1)), keep=int(d.get("keep", 0)),
+                               smooth=SmoothConfig(**d.get("smooth", {"iters": 0})))
+
+    def with_smoothing(self, iters: int | None = None,
+                       full_res_iters: int | None = None) -> "InferenceConfig":
+        smooth = self.smooth
+        if iters is not None:
+            smooth = replace(smooth, iters=int(iters))
+        if full_res_iters is not None:
+            smooth = replace(smooth, full_res_iters=int(full_res_iters))
+        return replace(self, smooth=smooth)
 
 
 def smooth_labels(labels: torch.Tensor, x: torch.Tensor, n: int,
@@ -395,9 +512,10 @@ def smooth_frame(lab: np.ndarray, h: np.ndarray, n: int, cfg: SmoothConfig) -> n
     return out
 
 
-# Label smoothing at the input's resolution (`smooth_full`): fewer iterations, on the pixels near
-# a boundary only, the same height kernel; sigma_px in model pixels, the window +-1.9 sigma.
-FULL_RES_SMOOTH = dict(iters=10, sigma_px=1.0)
+# Label smoothing at the input's resolution (`smooth_full`, SmoothConfig.full_res_iters
+# iterations), on the pixels near a boundary only, the same height kernel; sigma_px in model
+# pixels, the window +-1.9 sigma.
+FULL_RES_SIGMA_PX = 1.0
 # Regions wider than this many pixels per model pixel are smoothed on a coarser grid (every s-th
 # pixel) and upsampled: the cost grows with the square of the window.
 FULL_RES_MAX_CELL = 2.1
@@ -408,7 +526,7 @@ def smooth_full(labels: np.ndarray, depth_m: np.ndarray, floor_depth: float, max
     """Full-resolution labels (upsampled from the model's grid, hence blocky) -> labels whose
     boundaries follow the input's own height edges (`smooth_frame`), on a grid of at most
     FULL_RES_MAX_CELL pixels per model pixel."""
-    if cfg.iters == 0 or not labels.any():
+    if cfg.iters == 0 or cfg.full_res_iters == 0 or not labels.any():
         return labels
     ys, xs = np.nonzero(labels)
     Y0, Y1, X0, X1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
@@ -417,8 +535,8 @@ def smooth_full(labels: np.ndarray, depth_m: np.ndarray, floor_depth: float, max
     lab = labels[Y0:Y1:step, X0:X1:step]
     d = np.nan_to_num(np.asarray(depth_m, np.float32)[Y0:Y1:step, X0:X1:step])
     h = (floor_depth - d) / max_height * 2 - 1  # the model's units, not clipped
-    sigma = FULL_RES_SMOOTH["sigma_px"] * side / step / model_size  # in working pixels
-    full_cfg = replace(cfg, iters=FULL_RES_SMOOTH["iters"], sigma_px=sigma,
+    sigma = FULL_RES_SIGMA_PX * side / step / model_size  # in working pixels
+    full_cfg = replace(cfg, iters=cfg.full_res_iters, sigma_px=sigma,
                        radius=max(1, round(1.9 * sigma)))
     smoothed = smooth_frame(lab, h, n, full_cfg)
     out = labels.copy()
@@ -493,20 +611,16 @@ class Segmentation:
 
 
 class Segmenter:
-    """A trained model + its preprocessing + tau: depth frames in, segmentations out."""
+    """A trained model + its preprocessing + tau + its test-time settings (`InferenceConfig`):
+    depth frames in, segmentations out."""
 
     def __init__(self, G, E, model_cfg, prep_cfg, tau: float, device: str = "cpu",
-                 refine_steps: int = 0, hypotheses: int = 1,
-                 smooth: SmoothConfig = SmoothConfig(iters=0)):
+                 inference: InferenceConfig = InferenceConfig()):
         self.G, self.E = G.eval().to(device), E.eval().to(device)
         for p in self.G.parameters():  # test-time refinement optimises codes, never weights
             p.requires_grad_(False)
         self.model_cfg, self.prep_cfg, self.tau, self.device = model_cfg, prep_cfg, tau, device
-        self.refine_steps, self.hypotheses = int(refine_steps), int(hypotheses)
-        self.smooth = smooth
-
-    def _smoothing(self, iters: int | None) -> SmoothConfig:
-        return self.smooth if iters is None else replace(self.smooth, iters=int(iters))
+        self.inference = inference
 
     @staticmethod
     def from_checkpoint(path, device: str = "auto", tau: float | None = None) -> "Segmenter":
@@ -516,49 +630,43 @@ class Segmenter:
 
     @torch.no_grad()
     def segment_batch(self, x: np.ndarray | torch.Tensor, fg=None, tau: float | None = None,
-                      refine_steps: int | None = None, hypotheses: int | None = None,
-                      smooth_iters: int | None = None) -> dict:
+                      settings: InferenceConfig | None = None) -> dict:
         """(B, 1, 64, 64) prepared inputs -> labels (B, 64, 64) uint8, renders, scores, recon.
-        `tau`, `refine_steps`, `hypotheses`, `smooth_iters` override the model's settings."""
+        `tau` and `settings` override the model's."""
         tau = self.tau if tau is None else float(tau)
-        steps = self.refine_steps if refine_steps is None else int(refine_steps)
-        hyp = self.hypotheses if hypotheses is None else int(hypotheses)
-        smooth = self._smoothing(smooth_iters)
+        cfg = self.inference if settings is None else settings
         x = torch.as_tensor(x, dtype=torch.float32, device=self.device)
-        out = infer(self.G, self.E, x, refine_steps=steps, hypotheses=hyp)
+        out = infer(self.G, self.E, x, refine_steps=cfg.refine_steps, hypotheses=cfg.hypotheses,
+                    keep=cfg.keep or None)
         fg_t = (x[:, 0] > -1 + 1e-4) if fg is None else torch.as_tensor(fg, device=self.device)
         labels = labels_from_renders(out["renders"], tau, fg_t)
-        labels = smooth_labels(labels, x, out["renders"].shape[1], smooth)
+        labels = smooth_labels(labels, x, out["renders"].shape[1], cfg.smooth)
         out["labels"] = labels
         out["scores"] = instance_scores(out["renders"], labels, tau)
         return out
 
     def __call__(self, depth_m: np.ndarray, prep_cfg=None, tau: float | None = None,
-                 reconstruction: bool = True, refine_steps: int | None = None,
-                 hypotheses: int | None = None, smooth_iters: int | None = None
+                 reconstruction: bool = True, settings: InferenceConfig | None = None
                  ) -> Segmentation:
         """One depth frame (H, W) in metres -> Segmentation at the input's resolution.
 
         `prep_cfg` overrides the model's preprocessing (bin region, floor, min_height: the
         node's parameters); `tau` the calibrated threshold; `reconstruction=False` skips the
-        metric re-rendered depth; `refine_steps` / `hypotheses` the model's test-time refinement;
-        `smooth_iters` its label smoothing (`SmoothConfig`).
+        metric re-rendered depth; `settings` the model's refinement and smoothing.
         Raises ValueError on a bad frame."""
         from .preprocess import extend_labels, labels_to_full, prepare
 
         prep_cfg = self.prep_cfg if prep_cfg is None else prep_cfg
+        cfg = self.inference if settings is None else settings
         if prep_cfg.max_height != self.prep_cfg.max_height or prep_cfg.size != self.prep_cfg.size:
             raise ValueError("max_height and size are fixed by the model: "
                              f"{self.prep_cfg.max_height} m, {self.prep_cfg.size} px")
         prep = prepare(depth_m, prep_cfg)
-        out = self.segment_batch(prep.x[None, None], fg=prep.fg[None], tau=tau,
-                                 refine_steps=refine_steps, hypotheses=hypotheses,
-                                 smooth_iters=smooth_iters)
+        out = self.segment_batch(prep.x[None, None], fg=prep.fg[None], tau=tau, settings=cfg)
         labels64 = out["labels"][0].cpu().numpy()
         labels = extend_labels(labels_to_full(labels64, prep), depth_m, prep, prep_cfg)
         labels = smooth_full(labels, depth_m, prep.floor_depth, prep_cfg.max_height,
-                             self.model_cfg.n_instances, self._smoothing(smooth_iters),
-                             prep_cfg.size, prep.roi)
+                             self.model_cfg.n_instances, cfg.smooth, prep_cfg.size, prep.roi)
         recon = None
         if reconstruction:
             recon64 = out["reconstruction"][0, 0].cpu().numpy()

@@ -65,8 +65,10 @@ def test_card_matches_checkpoint(folder):
     assert card["precision"] == state["precision"]
     assert card["iterations"] == state["iteration"]
     seg = checkpoint.load_for_inference(path, device="cpu")
-    assert seg.tau == pytest.approx(card["tau"]) and seg.refine_steps == card["refine_steps"]
-    assert seg.hypotheses == card["hypotheses"] and seg.smooth.iters == card["smooth_iters"]
+    cfg = seg.inference
+    assert seg.tau == pytest.approx(card["tau"]) and cfg.refine_steps == card["refine_steps"]
+    assert cfg.hypotheses == card["hypotheses"] and cfg.smooth.iters == card["smooth_iters"]
+    assert cfg.keep == card.get("keep", 0)
     readme = (folder / "README.md").read_text()
     assert f"{card['tau']:.3f}" in readme and (folder / "qualitative.png").is_file()
 

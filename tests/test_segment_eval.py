@@ -148,7 +148,7 @@ def test_eval_cli_writes_table_json_and_png(tiny_model, tmp):
     assert (r["refine_steps"], r["hypotheses"]) == (3, 2) and "3 refinement steps" in p.stdout
     p = run_cli("eval", "--model", tiny_model / "run" / "best.pt", "--data",
                 tiny_model / "data", "--frames", "4", "--out", tmp / "ev3", "--hypotheses", "0")
-    assert p.returncode != 0 and "--hypotheses 0 invalid; valid: >= 1" in p.stderr
+    assert p.returncode != 0 and "hypotheses 0 invalid; valid: >= 1" in p.stderr
     p = run_cli("eval", "--model", tiny_model / "run" / "best.pt", "--data",
                 tiny_model / "data", "--frames", "4", "--out", tmp / "ev4", "--quiet",
                 "--methods", "kmeans", "--smooth-iters", "5", check=True, timeout=600)

@@ -160,9 +160,17 @@ class Segmenter(Node):
         s = self.model.prep_cfg.size
         x = np.full((1, 1, s, s), -1.0, np.float32)
         x[0, 0, s // 4:s // 2, s // 4:3 * s // 4] = 0.0  # one flat object
-        self.model.segment_batch(x, refine_steps=self.p["refine_steps"],
-                                 hypotheses=self.p["refine_hypotheses"],
-                                 smooth_iters=self.p["smooth_iters"])
+        self.model.segment_batch(x, settings=self._settings())
+
+    def _settings(self):
+        """The model's test-time settings (`InferenceConfig`) as the parameters now set them."""
+        from ..segment import InferenceConfig
+
+        return InferenceConfig(
+            refine_steps=self.p["refine_steps"], hypotheses=self.p["refine_hypotheses"],
+            keep=self.p["refine_keep"],
+            smooth=replace(self.model.inference.smooth, iters=self.p["smooth_iters"],
+                           full_res_iters=self.p["smooth_full_res_iters"]))
 
     # ------------------------------------------------------------------ parameters
     @staticmethod
@@ -205,10 +213,11 @@ class Segmenter(Node):
         })
 
     def _declare_runtime(self) -> None:
-        d, prep = self._descriptor, self.model.prep_cfg
+        d, prep, cfg = self._descriptor, self.model.prep_cfg, self.model.inference
         self._runtime_names = ["roi", "bin_polygon", "floor_depth", "min_height", "rim_band",
                                "rim_step", "tau",
-                               "refine_steps", "refine_hypotheses", "smooth_iters",
+                               "refine_steps", "refine_hypotheses", "refine_keep",
+                               "smooth_iters", "smooth_full_res_iters",
                                "publish_masks", "publish_overlay", "publish_reconstruction",
                                "resolution_change_frames"]
         self._declare({
@@ -233,18 +242,25 @@ class Segmenter(Node):
                 "carrying labels beyond the bin region", float_range=(0.0001, 0.1))),
             "tau": (float(self.model.tau), d("render threshold in [-1, 1] (default: calibrated, "
                                              "stored in the model)", float_range=(-1.0, 1.0))),
-            "refine_steps": (int(self.model.refine_steps), d(
+            "refine_steps": (int(cfg.refine_steps), d(
                 "test-time refinement of the poses per frame: Levenberg-Marquardt iterations "
-                "(default: the model's; each costs about 1.1 ms per starting point on one CPU "
-                "thread)", int_range=(0, 500))),
-            "refine_hypotheses": (int(self.model.hypotheses), d(
-                "starting points refined side by side, the best-fitting kept (default: the "
-                "model's; the refinement's time grows about in proportion)",
+                "(default: the model's; each costs about 1.5 ms per refined starting point on "
+                "one CPU thread)", int_range=(0, 500))),
+            "refine_hypotheses": (int(cfg.hypotheses), d(
+                "starting points: the encoder's poses, those on the mirrored inputs (up to 4), "
+                "then jittered ones; the best-fitting is kept (default: the model's)",
                 int_range=(1, 32))),
-            "smooth_iters": (int(self.model.smooth.iters), d(
-                "iterations of depth-aware label smoothing (default: the model's; 0 = off; "
-                "20 cost about 15 ms a 1280 x 720 frame on one CPU thread)",
-                int_range=(0, 200))),
+            "refine_keep": (int(cfg.keep), d(
+                "how many of the starting points, the best-fitting first, are refined; 0 = all "
+                "(default: the model's; the refinement's time grows about in proportion)",
+                int_range=(0, 32))),
+            "smooth_iters": (int(cfg.smooth.iters), d(
+                "iterations of depth-aware label smoothing at the model's 64 x 64 (default: the "
+                "model's; 0 = off, also at full resolution)", int_range=(0, 200))),
+            "smooth_full_res_iters": (int(cfg.smooth.full_res_iters), d(
+                "then iterations at the input's resolution near instance boundaries (default: "
+                "the model's; 0 = off; 10 cost about 14 ms a 1280 x 720 frame on one CPU "
+                "thread)", int_range=(0, 200))),
             "publish_masks": (True, d("publish ~/masks")),
             "publish_overlay": (True, d("publish ~/overlay (computed only when subscribed)")),
             "publish_reconstruction": (True, d("publish ~/reconstruction (only when "
@@ -339,9 +355,7 @@ class Segmenter(Node):
                 self.pub_recon.get_subscription_count() > 0
             try:
                 seg = self.model(depth, self._prep_for(depth), tau=self.p["tau"],
-                                 reconstruction=want_recon, refine_steps=self.p["refine_steps"],
-                                 hypotheses=self.p["refine_hypotheses"],
-                                 smooth_iters=self.p["smooth_iters"])
+                                 reconstruction=want_recon, settings=self._settings())
             except ValueError as e:
                 raise FrameError("depth", str(e)) from None
             t2 = time.perf_counter()

@@ -1,0 +1,251 @@
+"""Distilling test-time refinement into the encoder (amortised inference).
+
+The encoder's poses are only a starting point: Levenberg-Marquardt refinement (`segment.
+refine_poses`) improves them a lot, at a price of up to half a second a frame. Distillation
+makes the start itself better, so that a real-time setting (few or no refinement iterations)
+gains most of that:
+
+  1. pseudo-labels: the refined poses of `frames` unlabelled training frames (the model's own
+     best fit; no ground truth is used), written in chunks to pseudo.pt, so a killed run resumes;
+  2. the encoder is fine-tuned to predict them directly (G frozen): Hungarian-matched pose
+     features (translation, and the axis up to sign: what a render depends on) plus the
+     real-frame reconstruction loss, each frame randomly mirrored with its poses.
+
+    inseggan distill --checkpoint runs/cylinder_s1/best.pt --data data/cylinder \
+        --out runs/cylinder_distill
+
+Writes last.pt (every `eval_every` iterations; `--resume` continues from it) and best.pt (best
+validation score, as `inseggan train`: mIoU of the encoder's own poses where the validation
+frames have labels): training checkpoints with the new encoder, which `inseggan export` ships.
+Also log.jsonl, curves.png and summary.json. Explicit-template models only (SphereGenerator).
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from . import checkpoint, losses
+from .model import pose_features
+from .segment import _mirror_poses, calibrate_tau, refine_poses, start_poses
+
+
+@dataclass(frozen=True)
+class DistillConfig:
+    frames: int = 4000  # training frames given pseudo-labels
+    refine_steps: int = 24  # pseudo-labels: Levenberg-Marquardt iterations ...
+    hypotheses: int = 8  # ... from this many starting points
+    chunk: int = 100  # frames refined (and saved) at a time
+    iterations: int = 6000
+    batch_size: int = 32
+    lr: float = 3e-4
+    lambda_real: float = 1.0  # weight of the real-frame reconstruction loss
+    recon_levels: int = 4
+    eval_every: int = 500
+    eval_frames: int = 100
+    seed: int = 0
+
+    def __post_init__(self):
+        for name in ("frames", "refine_steps", "hypotheses", "chunk", "iterations", "batch_size",
+                     "eval_every", "eval_frames", "recon_levels"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} {getattr(self, name)!r} invalid; valid: >= 1")
+        if not self.lr > 0 or not self.lambda_real >= 0:
+            raise ValueError(f"lr {self.lr!r} must be > 0 and lambda_real {self.lambda_real!r} "
+                             ">= 0")
+
+
+def pseudo_labels(G, E, x: np.ndarray, cfg: DistillConfig, path: Path,
+                  progress: bool = True) -> torch.Tensor:
+    """(N, 1, 64, 64) frames -> (N, n, 6) refined poses, computed `chunk` frames at a time and
+    saved to `path` after each chunk (atomically); what is there already is reused."""
+    done = torch.empty(0)
+    settings = {"refine_steps": cfg.refine_steps, "hypotheses": cfg.hypotheses}
+    if path.is_file():
+        saved = torch.load(path, weights_only=False)
+        if saved["settings"] == settings:
+            done = saved["poses"]
+    bar = tqdm(total=len(x), initial=len(done), desc="pseudo-labels", unit="frame",
+               disable=not progress, dynamic_ncols=True)
+    parts = [done] if len(done) else []
+    with torch.no_grad():
+        for i in range(len(done), len(x), cfg.chunk):
+            xb = torch.from_numpy(x[i:i + cfg.chunk])
+            parts.append(refine_poses(G, start_poses(G, E, xb, cfg.hypotheses), xb,
+                                      cfg.refine_steps))
+            _save_atomic({"settings": settings, "poses": torch.cat(parts)}, path)
+            bar.update(len(xb))
+    bar.close()
+    return torch.cat(parts)[:len(x)]
+
+
+def _save_atomic(obj, path: Path) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    torch.save(obj, tmp)
+    tmp.replace(path)
+
+
+def _mirror_batch(x: torch.Tensor, pose: torch.Tensor, gen: torch.Generator):
+    """Each frame left-right and/or up-down mirrored at random, its poses with it."""
+    flips = torch.randint(0, 2, (len(x), 2), generator=gen).bool()
+    x, pose = x.clone(), pose.clone()
+    for fx in (False, True):
+        for fy in (False, True):
+            sel = (flips[:, 0] == fx) & (flips[:, 1] == fy)
+            dims = [d for d, f in ((3, fx), (2, fy)) if f]
+            if sel.any() and dims:
+                x[sel] = torch.flip(x[sel], dims)
+                pose[sel] = _mirror_poses(pose[sel], fx, fy)
+    return x, pose
+
+
+def _features(pose: torch.Tensor) -> torch.Tensor:
+    from .model import pose_matrix
+
+    B, n, _ = pose.shape
+    return pose_features(pose_matrix(pose.reshape(B * n, 6))).reshape(B, n, -1)
+
+
+@torch.no_grad()
+def evaluate(G, E, val: dict, tau: float) -> dict:
+    """The encoder's own poses (no refinement) on validation frames: reconstruction error and,
+    where there are labels, mIoU at the model's tau."""
+    from .metrics import mean_miou, miou_batch
+    from .segment import labels_from_renders
+
+    E.eval()
+    x = torch.from_numpy(val["x"])
+    pose = torch.cat([start_poses(G, E, x[i:i + 100])[:, 0] for i in range(0, len(x), 100)])
+    renders = G.render_poses(pose)
+    out = {"recon_l1": float((G.zbuffer(renders) - x).abs().mean())}
+    if val.get("labels") is not None:
+        fg = torch.from_numpy(val["fg"])
+        out["miou"] = float(mean_miou(miou_batch(
+            labels_from_renders(renders, tau, fg).numpy(), val["labels"])))
+    E.train()
+    return out
+
+
+def plot_curves(history: list, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    train = [h for h in history if h["kind"] == "train"]
+    val = [h for h in history if h["kind"] == "val"]
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.5))
+    for key in ("l_pose", "l_real"):
+        axes[0].plot([h["iteration"] for h in train], [h[key] for h in train], label=key)
+    for key in ("miou", "recon_l1"):
+        pts = [(h["iteration"], h[key]) for h in val if key in h]
+        if pts:
+            axes[1].plot(*zip(*pts), marker="o", label=f"val {key} (no refinement)")
+    for ax, title in zip(axes, ("distillation losses", "validation")):
+        ax.set_title(title)
+        ax.set_xlabel("iteration")
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    tmp = path.with_name(path.name + ".tmp.png")
+    fig.savefig(tmp, dpi=70)
+    plt.close(fig)
+    tmp.replace(path)
+
+
+def distill(source, train_x: np.ndarray, val: dict | None, out, cfg: DistillConfig = DistillConfig(),
+            resume: bool = False, progress: bool = True) -> dict:
+    """Fine-tune the encoder of training checkpoint `source` on `train_x` ((N, 1, 64, 64)
+    prepared frames; the first `cfg.frames` are used). -> summary (also out/summary.json)."""
+    state = checkpoint.load(source)
+    _, G, E = checkpoint.build_models(state, source)
+    if not hasattr(G, "render_poses"):
+        raise ValueError(f"{source}: distillation needs an explicit-template model "
+                         f"(renderer 'spheres'), not {G.cfg.renderer!r}")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    G.eval()
+    for p in G.parameters():
+        p.requires_grad_(False)
+    tau = float(state.get("tau", -0.5))
+    x = np.ascontiguousarray(train_x[:cfg.frames], dtype=np.float32)
+    torch.manual_seed(cfg.seed)
+    pseudo = pseudo_labels(G, E, x, cfg, out / "pseudo.pt", progress)
+    xt = torch.from_numpy(x)
+    opt = torch.optim.Adam(E.parameters(), cfg.lr, betas=(0.5, 0.999))
+    gen = torch.Generator().manual_seed(cfg.seed)
+    it, best, history, before = 0, -math.inf, [], 0.0
+    if resume and (out / "last.pt").is_file():
+        last = checkpoint.load(out / "last.pt")["distill"]
+        E.load_state_dict(checkpoint.load(out / "last.pt")["encoder"])
+        opt.load_state_dict(last["optimizer"])
+        gen.set_state(last["generator"])
+        it, best, history, before = last["iteration"], last["best"], last["history"], last["seconds"]
+    start = time.monotonic()
+
+    def save(path: Path) -> None:
+        record = {"config": asdict(cfg), "source": str(source), "iteration": it, "best": best,
+                  "history": history, "seconds": before + time.monotonic() - start,
+                  "optimizer": opt.state_dict(), "generator": gen.get_state()}
+        checkpoint.save(path, {**{k: v for k, v in state.items() if k != "format"},
+                               "encoder": E.state_dict(), "distill": record})
+
+    def validate() -> bool:
+        nonlocal best
+        v = evaluate(G, E, val, tau)
+        score = v.get("miou", -v["recon_l1"])
+        improved = score > best
+        best = max(best, score)
+        rec = {"kind": "val", "iteration": it, **v}
+        history.append(rec)
+        with open(out / "log.jsonl", "a") as f:
+            f.write(json.dumps(rec) + "\n")
+        plot_curves(history, out / "curves.png")
+        tqdm.write(f"iter {it}: " + ", ".join(f"{k} {v_:.4f}" for k, v_ in v.items())
+                   + (" (best)" if improved else ""))
+        return improved
+
+    E.train()
+    if val is not None and it == 0 and validate():
+        save(out / "best.pt")  # the shipped encoder, for comparison
+    bar = tqdm(total=cfg.iterations, initial=it, desc="distilling", unit="it",
+               disable=not progress, dynamic_ncols=True)
+    stats = {}
+    while it < cfg.iterations:
+        idx = torch.randint(0, len(xt), (cfg.batch_size,), generator=gen)
+        xb, target = _mirror_batch(xt[idx], pseudo[idx], gen)
+        z = E(xb)
+        B, n, d = z.shape
+        pose = G.pose(z.reshape(B * n, d)).reshape(B, n, 6)
+        l_pose = losses.alignment_loss(_features(target), _features(pose))
+        l_real = losses.pyramid_l1(G.zbuffer(G.render_poses(pose)), xb, cfg.recon_levels)
+        opt.zero_grad(set_to_none=True)
+        (l_pose + cfg.lambda_real * l_real).backward()
+        opt.step()
+        it += 1
+        stats = {"l_pose": round(l_pose.item(), 5), "l_real": round(l_real.item(), 5)}
+        bar.update(1)
+        bar.set_postfix(pose=f"{stats['l_pose']:.3f}", real=f"{stats['l_real']:.3f}")
+        if it % 50 == 0:
+            rec = {"kind": "train", "iteration": it, **stats}
+            history.append(rec)
+            with open(out / "log.jsonl", "a") as f:
+                f.write(json.dumps(rec) + "\n")
+        if it % cfg.eval_every == 0 or it == cfg.iterations:
+            if val is not None and validate():
+                save(out / "best.pt")
+            save(out / "last.pt")
+    bar.close()
+    if not (out / "best.pt").is_file():
+        save(out / "best.pt")
+    summary = {"iterations": it, "seconds": round(before + time.monotonic() - start, 1),
+               "best_score": best, "pseudo_label_frames": len(x), "last": stats,
+               "val": [h for h in history if h["kind"] == "val"]}
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    plot_curves(history, out / "curves.png")
+    return summary

@@ -1,0 +1,73 @@
+"""Distillation (`inseggan distill`): a real, small run on the shipped cylinder model must bring
+the encoder's own poses closer to its refined poses, and a stopped run resumes."""
+import json
+from pathlib import Path
+
+import pytest
+import torch
+from conftest import run_cli
+
+from inseggan_ros import checkpoint, losses
+from inseggan_ros.data import load_sim_split
+from inseggan_ros.distill import _features
+
+MODEL = Path(__file__).resolve().parents[1] / "models" / "cylinder" / "model.pt"
+
+
+@pytest.fixture(scope="module")
+def cyl_data(tmp_path_factory):
+    out = tmp_path_factory.mktemp("distill") / "cyl"
+    run_cli("simulate", "--quiet", "--count", "80", "--split", "0.8,0.1,0.1", "--workers", "2",
+            "--out", out, check=True, timeout=600)
+    return out
+
+
+def _pose_loss(path, x, pseudo) -> float:
+    """Hungarian-matched pose-feature error of the checkpoint's encoder against the pseudo-labels."""
+    _, G, E = checkpoint.build_models(checkpoint.load(path), path)
+    with torch.no_grad():
+        z = E.eval()(x)
+        pose = G.pose(z.reshape(-1, z.shape[-1])).reshape(len(x), z.shape[1], 6)
+        return float(losses.alignment_loss(_features(pseudo), _features(pose)))
+
+
+def test_distillation_brings_the_encoder_towards_its_refined_poses(tmp, cyl_data):
+    out = tmp / "d"
+    args = ["distill", "--checkpoint", MODEL, "--data", cyl_data, "--out", out, "--frames",
+            "48", "--refine-steps", "6", "--hypotheses", "2", "--eval-every", "40", "--quiet"]
+    run_cli(*args, "--iterations", "40", check=True, timeout=600)
+    first = json.loads((out / "summary.json").read_text())
+    assert first["iterations"] == 40 and first["pseudo_label_frames"] == 48
+    pseudo = torch.load(out / "pseudo.pt", weights_only=False)
+    assert pseudo["poses"].shape == (48, 5, 6)
+    stamp = (out / "pseudo.pt").stat().st_mtime_ns
+
+    p = run_cli(*args, "--iterations", "120", "--resume", check=True, timeout=600)
+    assert "distilled 120 iterations on 48 pseudo-labelled frames" in p.stdout
+    assert (out / "pseudo.pt").stat().st_mtime_ns == stamp  # reused, not refined again
+    val = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    assert [r["iteration"] for r in val if r["kind"] == "val"] == [0, 40, 80, 120]
+    for name in ("best.pt", "last.pt", "curves.png"):
+        assert (out / name).is_file(), name
+
+    x = torch.from_numpy(load_sim_split(cyl_data, "train", limit=48)["x"])
+    before = _pose_loss(MODEL, x, pseudo["poses"])
+    after = _pose_loss(out / "last.pt", x, pseudo["poses"])
+    # measured here: 0.095 -> 0.060 (a loss that the flat, untrained result would not lower)
+    assert after < 0.85 * before, f"pose error to the refined poses: {before:.4f} -> {after:.4f}"
+    # the result is a complete checkpoint: the segmenter loads it, with the source's settings
+    seg = checkpoint.load_for_inference(out / "last.pt", device="cpu")
+    assert seg.segment_batch(x[:2])["labels"].shape == (2, 64, 64)
+
+
+def test_distill_refuses_a_learned_renderer_and_a_missing_checkpoint(tmp, cyl_data):
+    run_cli("train", "--data", cyl_data, "--out", tmp / "run", "--iterations", "2",
+            "--eval-every", "2", "--config", "cpu", "--nf", "8", "--batch-size", "4", "--quiet",
+            "--device", "cpu", check=True, timeout=600)
+    p = run_cli("distill", "--checkpoint", tmp / "run" / "best.pt", "--data", cyl_data,
+                "--out", tmp / "d", "--frames", "8", "--quiet")
+    assert p.returncode == 2 and "needs an explicit-template model" in p.stderr
+    p = run_cli("distill", "--checkpoint", tmp / "missing.pt", "--data", cyl_data,
+                "--out", tmp / "d2", "--frames", "8", "--quiet")
+    assert p.returncode == 2 and "no such model file" in p.stderr
+    assert not (tmp / "d2" / "pseudo.pt").exists()
