@@ -47,32 +47,9 @@ def simulated_frames(count: int, width: int, height: int) -> list[np.ndarray]:
                 for k in range(count)]
 
 
-# The segmenter's test-time parameters the benchmark can set (`--params-file`, flags).
-SETTINGS = ("refine_steps", "refine_hypotheses", "refine_keep", "smooth_iters",
-            "smooth_full_res_iters")
-
-
-def read_params_file(path) -> dict:
-    """The segmenter's parameters in a ROS 2 parameters file (`segmenter:` or `/**:` section)."""
-    import yaml
-
-    doc = yaml.safe_load(Path(path).read_text()) or {}
-    out = {}
-    for node in ("/**", "segmenter", "/segmenter"):
-        out.update((doc.get(node) or {}).get("ros__parameters", {}))
-    return out
-
-
-def settings_from_params(model, params: dict):
-    """The model's `InferenceConfig` with the node parameters in `params` applied, as the node
-    applies them."""
-    from dataclasses import replace
-
-    cfg = model.inference
-    return replace(cfg, refine_steps=int(params.get("refine_steps", cfg.refine_steps)),
-                   hypotheses=int(params.get("refine_hypotheses", cfg.hypotheses)),
-                   keep=int(params.get("refine_keep", cfg.keep))).with_smoothing(
-        params.get("smooth_iters"), params.get("smooth_full_res_iters"))
+# The segmenter's test-time parameters the benchmark can set, and its flags for them.
+FLAGS = {"refine_steps": "refine_steps", "refine_hypotheses": "hypotheses", "refine_keep": "keep",
+         "smooth_iters": "smooth_iters", "smooth_full_res_iters": "full_res_smooth_iters"}
 
 
 def in_process_reference(frames, model_path: str, params: dict, repeats: int = 3) -> dict:
@@ -82,12 +59,13 @@ def in_process_reference(frames, model_path: str, params: dict, repeats: int = 3
     from .image_codec import depth_to_metres
     from .nodes import conversions
     from .nodes.segmenter import resolve_model
+    from .params import apply
     from .preprocess import node_defaults
     from .segment import Segmenter
 
     torch.set_num_threads(1)
     seg = Segmenter.from_checkpoint(resolve_model(model_path), device="cpu")
-    settings = settings_from_params(seg, params)
+    settings = apply(seg.inference, params)
     prep = node_defaults(seg.prep_cfg, depth_to_metres(frames[0], "16UC1"))
     infer_ms, conv_ms = [], []
     for _ in range(repeats):
@@ -126,11 +104,15 @@ def main(argv=None) -> int:
                          "profile (config/fastdds_large_frames.xml)")
     args = ap.parse_args(argv)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    params = read_params_file(args.params_file) if args.params_file else {}
-    for name, flag in zip(SETTINGS, ("refine_steps", "hypotheses", "keep", "smooth_iters",
-                                     "full_res_smooth_iters")):
-        if getattr(args, flag) is not None:
-            params[name] = getattr(args, flag)
+    from .params import read_params_file
+
+    try:
+        params = read_params_file(args.params_file) if args.params_file else {}
+    except ValueError as e:
+        print(f"bench-node: error: {e}", file=sys.stderr)
+        return 2
+    params.update({name: getattr(args, flag) for name, flag in FLAGS.items()
+                   if getattr(args, flag) is not None})
     from .dds import PROFILE_VARIABLES, use_large_frames_profile
 
     if args.default_transport:
@@ -171,8 +153,7 @@ def main(argv=None) -> int:
     model = ["-p", f"model_path:={args.model}"] if args.model else []
     if args.params_file:
         model += ["--params-file", str(args.params_file)]
-    for name, flag in zip(SETTINGS, ("refine_steps", "hypotheses", "keep", "smooth_iters",
-                                     "full_res_smooth_iters")):
+    for name, flag in FLAGS.items():
         if getattr(args, flag) is not None:
             model += ["-p", f"{name}:={getattr(args, flag)}"]
     seg = subprocess.Popen([_executable("segmenter"), "--ros-args", *model,

@@ -192,12 +192,7 @@ def cmd_eval(args) -> int:
         raise ValueError(f"--threads {args.threads} invalid; valid: >= 1")
     torch.set_num_threads(args.threads)
     seg = load_for_inference(args.model, device=args.device)
-    cfg = seg.inference
-    for flag, name in (("refine_steps", "refine_steps"), ("hypotheses", "hypotheses"),
-                       ("keep", "keep")):
-        if getattr(args, flag) is not None:
-            cfg = replace(cfg, **{name: getattr(args, flag)})  # validates, naming the setting
-    seg.inference = cfg.with_smoothing(args.smooth_iters, args.full_res_smooth_iters)
+    seg.inference = _settings(args, seg.inference)
     n = seg.model_cfg.n_instances
     if args.data:
         d = data_mod.load_sim_split(args.data, args.split, seg.prep_cfg, limit=args.frames)
@@ -226,17 +221,30 @@ def cmd_eval(args) -> int:
     return 0
 
 
+def _settings(args, base):
+    """InferenceConfig: `base`, then the --profile parameters file, then the explicit flags."""
+    from .params import apply, read_params_file
+
+    cfg = apply(base, read_params_file(args.profile)) if args.profile else base
+    for flag, name in (("refine_steps", "refine_steps"), ("hypotheses", "hypotheses"),
+                       ("keep", "keep")):
+        if getattr(args, flag) is not None:
+            cfg = replace(cfg, **{name: getattr(args, flag)})  # validates, naming the setting
+    return cfg.with_smoothing(args.smooth_iters, args.full_res_smooth_iters)
+
+
 def cmd_export(args) -> int:
     from .evaluate import format_table
     from .modelcard import export_model
+    from .params import apply, read_params_file
+    from .segment import InferenceConfig
 
+    inference = _settings(args, InferenceConfig())
+    also = {Path(f).stem: apply(InferenceConfig(), read_params_file(f))
+            for f in args.also_profile or []}
     card = export_model(args.checkpoint, args.data, args.name, args.out or Path("models") / args.name,
-                        refine_steps=args.refine_steps, hypotheses=args.hypotheses,
-                        half=not args.no_half,
-                        frames=args.frames, notes=args.config_name or "",
-                        sample_bag=args.sample_bag, also_refine=args.also_refine,
-                        smooth_iters=args.smooth_iters, keep=args.keep,
-                        full_res_iters=args.full_res_smooth_iters)
+                        inference=inference, half=not args.no_half, frames=args.frames,
+                        notes=args.config_name or "", sample_bag=args.sample_bag, also=also)
     print(f"exported {args.name}: tau {card['tau']:.3f}, {card['precision']}, refine steps "
           f"{card['refine_steps']} x {card['hypotheses']} hypotheses; test split:")
     print(format_table(card["test"]))
@@ -301,6 +309,19 @@ def cmd_bag_info(args) -> int:
     return 0
 
 
+def _add_settings_args(p: argparse.ArgumentParser, default: str) -> None:
+    """Test-time settings: a node parameters file and flags that override it."""
+    p.add_argument("--profile", type=Path,
+                   help="segmenter parameters file, e.g. config/realtime.yaml " + default)
+    p.add_argument("--refine-steps", type=int, help="Levenberg-Marquardt iterations")
+    p.add_argument("--hypotheses", type=int, help="starting points of the refinement")
+    p.add_argument("--keep", type=int, help="starting points refined, the best-fitting first "
+                                            "(0 = all)")
+    p.add_argument("--smooth-iters", type=int, help="label-smoothing iterations at 64 x 64")
+    p.add_argument("--full-res-smooth-iters", type=int,
+                   help="label-smoothing iterations at the input's resolution")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="inseggan", description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -337,21 +358,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", type=Path, required=True, help="its simulated data set (val, test)")
     p.add_argument("--name", required=True)
     p.add_argument("--out", type=Path, help="default: models/<name>")
-    p.add_argument("--refine-steps", type=int, default=0, help="test-time refinement steps")
-    p.add_argument("--hypotheses", type=int, default=1,
-                   help="starting points of test-time refinement (multi-start, default 1)")
-    p.add_argument("--smooth-iters", type=int, default=0,
-                   help="depth-aware label smoothing iterations (segment.SmoothConfig; 0 = off)")
-    p.add_argument("--keep", type=int, default=0,
-                   help="of the starting points, refine the best-fitting KEEP (default 0: all)")
-    p.add_argument("--full-res-smooth-iters", type=int, default=10,
-                   help="smoothing iterations at the input's resolution (default 10)")
+    _add_settings_args(p, "(default: none)")
+    p.add_argument("--also-profile", type=Path, action="append",
+                   help="parameters file of other settings to measure on the test split too "
+                        "(a row inseggan_<file stem>; repeatable)")
     p.add_argument("--no-half", action="store_true", help="keep float32 weights")
     p.add_argument("--frames", type=int, default=200)
     p.add_argument("--config-name", help="the named training config, for the card")
     p.add_argument("--sample-bag", help="name of a shipped bag of this object (tests use it)")
-    p.add_argument("--also-refine", type=int,
-                   help="also evaluate InSeGAN with this many refinement steps")
     p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("bench-sim", help="simulator throughput (scenes/s)")
@@ -437,16 +451,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--topic")
     p.add_argument("--frames", type=int, default=200)
     p.add_argument("--methods", help="comma-separated baselines (default: all)")
-    p.add_argument("--refine-steps", type=int,
-                   help="test-time refinement steps (default: the model's; 0 for a checkpoint "
-                        "from training)")
-    p.add_argument("--hypotheses", type=int, help="refinement starting points (default: the model's)")
-    p.add_argument("--smooth-iters", type=int,
-                   help="label smoothing iterations (default: the model's; 0 = off)")
-    p.add_argument("--keep", type=int,
-                   help="starting points refined, the best-fitting first (default: the model's)")
-    p.add_argument("--full-res-smooth-iters", type=int,
-                   help="smoothing iterations at the input's resolution (default: the model's)")
+    _add_settings_args(p, "(default: the model's)")
     p.add_argument("--device", default="auto")
     p.add_argument("--threads", type=int, default=1,
                    help="CPU threads for inference (default 1, as the model cards and the node; "

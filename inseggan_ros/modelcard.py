@@ -34,32 +34,33 @@ def _val_miou(seg, val: dict) -> float:
     return float(mean_miou(results["inseggan"]["scores"]))
 
 
-def export_model(checkpoint_path, data_root, name: str, out_dir, refine_steps: int = 0,
-                 hypotheses: int = 1, half: bool = True, frames: int = 200, notes: str = "",
-                 sample_bag: str | None = None, also_refine: int | None = None,
-                 smooth_iters: int = 0, keep: int = 0, full_res_iters: int = 10) -> dict:
-    from dataclasses import replace
-
+def export_model(checkpoint_path, data_root, name: str, out_dir, inference=None,
+                 half: bool = True, frames: int = 200, notes: str = "",
+                 sample_bag: str | None = None, also: dict | None = None) -> dict:
+    """Ship a trained model: out_dir/model.pt (inference weights, tau calibrated with the
+    shipped `inference` settings, an InferenceConfig), card.json, README.md, qualitative.png.
+    `also`: {name: InferenceConfig} of other settings measured on the test split as well (a
+    row `inseggan_<name>` each)."""
     import torch
 
     from . import checkpoint as ckpt
     from . import data as data_mod
     from . import evaluate
-    from .segment import InferenceConfig, SmoothConfig, calibrate_tau, infer
+    from .segment import InferenceConfig, calibrate_tau, infer
 
     torch.set_num_threads(1)  # as the card says, and as the node runs by default: the pick
     # among refinement starts can tip with another thread count's rounding
     state = ckpt.load(checkpoint_path)
     seg = ckpt.load_for_inference(checkpoint_path, device="cpu")
-    seg.inference = InferenceConfig(refine_steps, hypotheses, keep,
-                                    SmoothConfig(iters=smooth_iters, full_res_iters=full_res_iters))
+    seg.inference = inference = inference or InferenceConfig()
     val = data_mod.load_sim_split(data_root, "val", seg.prep_cfg, limit=frames)
     test = data_mod.load_sim_split(data_root, "test", seg.prep_cfg, limit=frames)
 
     # 1. tau with the shipped inference settings (on the z-buffered labels, before smoothing)
     x = torch.from_numpy(val["x"])
-    renders = torch.cat([infer(seg.G, seg.E, x[i:i + 50], refine_steps=refine_steps,
-                               hypotheses=hypotheses, keep=keep or None)["renders"]
+    renders = torch.cat([infer(seg.G, seg.E, x[i:i + 50], refine_steps=inference.refine_steps,
+                               hypotheses=inference.hypotheses,
+                               keep=inference.keep or None)["renders"]
                          for i in range(0, len(x), 50)])
     tau, scores = calibrate_tau(renders, torch.from_numpy(val["fg"]), val["labels"])
     seg.tau = tau
@@ -89,14 +90,13 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, refine_steps: i
     # 3. the quality table on the test split (and, for reference, InSeGAN with more test-time
     # refinement than it ships with: better labels, slower frames)
     results = evaluate.run_methods(test, seg.model_cfg.n_instances, seg, progress=True)
-    if also_refine is not None and also_refine != refine_steps:
-        shipped = seg.inference
-        seg.inference = replace(shipped, refine_steps=also_refine)
-        extra = evaluate.run_methods(test, seg.model_cfg.n_instances, seg, methods=[],
-                                     progress=False)["inseggan"]
-        seg.inference = shipped
-        results = {"inseggan": results.pop("inseggan"),
-                   f"inseggan_refine{also_refine}": extra, **results}
+    extras = {}
+    for other_name, other in (also or {}).items():
+        seg.inference = other
+        extras[f"inseggan_{other_name}"] = evaluate.run_methods(
+            test, seg.model_cfg.n_instances, seg, methods=[], progress=False)["inseggan"]
+        seg.inference = inference
+    results = {"inseggan": results.pop("inseggan"), **extras, **results}
     summary = evaluate.summarise(results, len(test["x"]))
 
     bag_scores = sample_bag_scores(seg, sample_bag) if sample_bag else None
@@ -111,9 +111,10 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, refine_steps: i
         "train_config": tcfg, "iterations": state["iteration"],
         "wall_minutes": round(state["elapsed_seconds"] / 60, 1),
         "hardware": f"{platform.machine()} CPU, {os.cpu_count()} cores (torch threads: 1)",
-        "tau": tau, "refine_steps": int(refine_steps), "hypotheses": int(hypotheses),
-        "smooth_iters": int(smooth_iters), "keep": int(keep),
-        "full_res_smooth_iters": int(full_res_iters) if smooth_iters else 0,
+        "tau": tau, "refine_steps": inference.refine_steps, "hypotheses": inference.hypotheses,
+        "smooth_iters": inference.smooth.iters, "keep": inference.keep,
+        "full_res_smooth_iters": inference.smooth.full_res_iters if inference.smooth.iters else 0,
+        "also": {k: v.to_dict() for k, v in (also or {}).items()},
         "distillation": _distill_record(state),
         "precision": precision,
         "sample_bag": sample_bag, "sample_bag_scores": bag_scores,
@@ -183,6 +184,14 @@ def full_resolution_scores(seg, bag_path) -> dict:
             "kmeans": float(mean_miou(miou_batch(np.stack(km), gt)))}
 
 
+def _settings_text(d: dict) -> str:
+    smooth = d["smooth"]
+    keep = f", the best-fitting {d['keep']} refined" if d.get("keep") else ""
+    full = smooth.get("full_res_iters", 10) if smooth["iters"] else 0
+    return (f"{d['refine_steps']} refinement iterations from {d['hypotheses']} starting "
+            f"point(s){keep}, {smooth['iters']} smoothing iterations + {full} at full resolution")
+
+
 def _distill_line(card: dict) -> list[str]:
     d = card.get("distillation")
     if not d:
@@ -250,9 +259,10 @@ def card_markdown(card: dict) -> str:
         format_table(card["test"]), "",
         "Hard subset: frames where K-Means scores below 0.6 (the paper's choice of test images).",
         "`inseggan` is the model as shipped (what the segmenter node runs by default, with the",
-        "refinement steps above); `inseggan_refineN`, where present, the same model with N steps",
-        "of test-time pose refinement instead (the node's `refine_steps` parameter): more steps",
-        "give better labels and slower frames.", "",
+        "settings above); `inseggan_<name>`, where present, the same model with other test-time",
+        "settings (`config/<name>.yaml`, the node's parameters):",
+        *[f"* `inseggan_{k}`: {_settings_text(v)}" for k, v in card.get("also", {}).items()],
+        "",
         *_bag_line(card),
         "![qualitative](qualitative.png)", "",
     ]
