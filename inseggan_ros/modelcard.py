@@ -200,8 +200,9 @@ def _distill_line(card: dict) -> list[str]:
     before = f"{v['before']:.3f} -> " if v["before"] is not None else ""
     return [f"* **Encoder distilled** (`inseggan distill`) on its own refined poses of "
             f"{c['frames']} training frames ({c['refine_steps']} iterations x {c['hypotheses']} "
-            f"starts): {d['iterations']} iterations, {d['wall_minutes']} min; validation mIoU "
-            f"without refinement {before}{v['best']:.3f}"]
+            f"starts), then fine-tuned, best of {c['iterations']} iterations at {d['iterations']} "
+            f"({d['wall_minutes']} min of fine-tuning); validation mIoU without refinement "
+            f"{before}{v['best']:.3f}"]
 
 
 def _bag_line(card: dict) -> list[str]:

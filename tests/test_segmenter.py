@@ -223,3 +223,29 @@ def test_parameter_changes_are_validated_at_run_time():
         assert set_param("rim_step", "0.0").startswith("rejected")  # outside 0.0001..0.1
     finally:
         assert stop(seg) == 0
+
+
+@pytest.mark.parametrize("profile", ["realtime", "quality"])
+def test_shipped_parameter_files_set_the_segmenter(profile):
+    """config/<profile>.yaml, as installed, applies to the segmenter in any namespace (its
+    `/**/segmenter` section), and a -p after it still wins."""
+    from inseggan_ros.params import read_params_file
+
+    path = installed_executable("segmenter").parents[2] / "share" / "inseggan_ros" / "config" / \
+        f"{profile}.yaml"
+    wanted = read_params_file(path)
+    ns = f"/seg_{profile}"
+    args = [str(installed_executable("segmenter")), "--ros-args", "-r", f"__ns:={ns}",
+            "--params-file", str(path), "-p", "tau:=-0.3"]
+    seg = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        p = subprocess.run([sys.executable, str(HERE / "get_params.py"), f"{ns}/segmenter",
+                            *wanted, "tau"], capture_output=True, text=True, timeout=90)
+        got = json.loads(p.stdout)
+        assert got == {**wanted, "tau": -0.3}
+        set_param = [sys.executable, str(HERE / "set_param.py"), f"{ns}/segmenter"]
+        assert subprocess.run([*set_param, "refine_keep", "-1"], capture_output=True, text=True,
+                              timeout=60).stdout.startswith("rejected")  # outside 0..32
+    finally:
+        assert stop(seg) == 0
+
