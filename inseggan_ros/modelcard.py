@@ -186,10 +186,15 @@ def full_resolution_scores(seg, bag_path) -> dict:
 
 def _settings_text(d: dict) -> str:
     smooth = d["smooth"]
-    keep = f", the best-fitting {d['keep']} refined" if d.get("keep") else ""
     full = smooth.get("full_res_iters", 10) if smooth["iters"] else 0
-    return (f"{d['refine_steps']} refinement iterations from {d['hypotheses']} starting "
-            f"point(s){keep}, {smooth['iters']} smoothing iterations + {full} at full resolution")
+    if d["refine_steps"] == 0:
+        start = (f"no refinement, the best-fitting of {d['hypotheses']} starting points"
+                 if d["hypotheses"] > 1 else "no refinement")
+    else:
+        keep = f", the best-fitting {d['keep']} refined" if d.get("keep") else ""
+        start = (f"{d['refine_steps']} refinement iterations from {d['hypotheses']} starting "
+                 f"point(s){keep}")
+    return f"{start}, {smooth['iters']} smoothing iterations + {full} at full resolution"
 
 
 def _distill_line(card: dict) -> list[str]:

@@ -310,8 +310,8 @@ def refine_poses(G, pose: torch.Tensor, x: torch.Tensor, steps: int, reseeds: in
     input best (multi-start). Every scene is fitted on its own, so hypothesis 0 follows exactly
     the path it would follow alone and more hypotheses never fit worse. Choosing the start
     before refining (`keep` 1) costs one render per start instead of a refinement per start.
-    Levenberg-Marquardt replaced 30 Adam steps (session 5; docs/experiments.md). -> (B, n, 6)
-    poses."""
+    Levenberg-Marquardt replaced 30 Adam steps (session 5), and in session 6 fitted each rod's
+    axis with image-gradient columns, twice as fast (docs/experiments.md). -> (B, n, 6) poses."""
     B, H, n, _ = pose.shape
     template = G.spheres()  # fixed while the poses move: computed once
     target = F.adaptive_avg_pool2d(x, size)

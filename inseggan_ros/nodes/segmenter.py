@@ -244,8 +244,8 @@ class Segmenter(Node):
                                              "stored in the model)", float_range=(-1.0, 1.0))),
             "refine_steps": (int(cfg.refine_steps), d(
                 "test-time refinement of the poses per frame: Levenberg-Marquardt iterations "
-                "(default: the model's; each costs about 1.5 ms per refined starting point on "
-                "one CPU thread)", int_range=(0, 500))),
+                "(default: the model's; each costs about 1.4 ms for one refined starting point, "
+                "0.6 ms a point with 8, on one CPU thread)", int_range=(0, 500))),
             "refine_hypotheses": (int(cfg.hypotheses), d(
                 "starting points: the encoder's poses, those on the mirrored inputs (up to 4), "
                 "then jittered ones; the best-fitting is kept (default: the model's)",
