@@ -105,10 +105,19 @@ def _mirror_batch(x: torch.Tensor, pose: torch.Tensor, gen: torch.Generator):
     return x, pose
 
 
+# Heights below this (image half-widths) put a rod out of sight whatever the value: the fit sinks
+# instances it does not need without bound (cylinder pseudo-labels reached -164), so targets and
+# predictions are compared with their heights clamped here.
+SUNK = -1.0
+
+
 def _features(pose: torch.Tensor) -> torch.Tensor:
+    """(B, n, 6) poses -> (B, n, 9) what a render depends on (`model.pose_features`), the
+    height clamped at SUNK."""
     from .model import pose_matrix
 
     B, n, _ = pose.shape
+    pose = torch.cat([pose[..., :5], pose[..., 5:].clamp_min(SUNK)], -1)
     return pose_features(pose_matrix(pose.reshape(B * n, 6))).reshape(B, n, -1)
 
 
@@ -133,29 +142,10 @@ def evaluate(G, E, val: dict, tau: float) -> dict:
 
 
 def plot_curves(history: list, path: Path) -> None:
-    import matplotlib
+    from .viz import plot_history
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    train = [h for h in history if h["kind"] == "train"]
-    val = [h for h in history if h["kind"] == "val"]
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.5))
-    for key in ("l_pose", "l_real"):
-        axes[0].plot([h["iteration"] for h in train], [h[key] for h in train], label=key)
-    for key in ("miou", "recon_l1"):
-        pts = [(h["iteration"], h[key]) for h in val if key in h]
-        if pts:
-            axes[1].plot(*zip(*pts), marker="o", label=f"val {key} (no refinement)")
-    for ax, title in zip(axes, ("distillation losses", "validation")):
-        ax.set_title(title)
-        ax.set_xlabel("iteration")
-        ax.legend(fontsize=8)
-    fig.tight_layout()
-    tmp = path.with_name(path.name + ".tmp.png")
-    fig.savefig(tmp, dpi=70)
-    plt.close(fig)
-    tmp.replace(path)
+    plot_history(history, path, [("distillation losses", "train", ("l_pose", "l_real")),
+                                 ("validation, no refinement", "val", ("miou", "recon_l1"))])
 
 
 def distill(source, train_x: np.ndarray, val: dict | None, out, cfg: DistillConfig = DistillConfig(),

@@ -363,31 +363,11 @@ def save_samples(run: Run, x: torch.Tensor, path: Path, tau: float) -> None:
 
 
 def plot_curves(history: list, path: Path) -> None:
-    import matplotlib
+    from .viz import plot_history
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    train = [h for h in history if h["kind"] == "train"]
-    val = [h for h in history if h["kind"] == "val"]
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.5))
-    for key in ("loss_d", "loss_g"):
-        axes[0].plot([h["iteration"] for h in train], [h[key] for h in train], label=key)
-    for key in ("l_a", "l_i", "l_p", "l_real"):
-        axes[1].plot([h["iteration"] for h in train], [h[key] for h in train], label=key)
-    for key in ("miou", "recon_l1"):
-        pts = [(h["iteration"], h[key]) for h in val if key in h]
-        if pts:
-            axes[2].plot(*zip(*pts), marker="o", label=f"val {key}")
-    for ax, title in zip(axes, ("adversarial", "encoder", "validation")):
-        ax.set_title(title)
-        ax.set_xlabel("iteration")
-        ax.legend(fontsize=8)
-    fig.tight_layout()
-    tmp = path.with_name(path.name + ".tmp.png")
-    fig.savefig(tmp, dpi=70)
-    plt.close(fig)
-    os.replace(tmp, path)
+    plot_history(history, path, [("adversarial", "train", ("loss_d", "loss_g")),
+                                 ("encoder", "train", ("l_a", "l_i", "l_p", "l_real")),
+                                 ("validation", "val", ("miou", "recon_l1"))])
 
 
 # ----------------------------------------------------------------------------- the loop

@@ -79,3 +79,30 @@ def save_sheet(path, rows: list[list[np.ndarray]], row_titles=None, col_titles=N
     plt.close(fig)
     os.replace(tmp, path)
     return path
+
+
+def plot_history(history: list, path, panels) -> None:
+    """Training curves as PNG, written atomically. `history`: records with "kind" ("train" or
+    "val") and "iteration"; `panels`: (title, kind, keys) per subplot; validation keys are
+    drawn with markers."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.4 * len(panels), 3.5), squeeze=False)
+    for ax, (title, kind, keys) in zip(axes[0], panels):
+        for key in keys:
+            pts = [(h["iteration"], h[key]) for h in history if h["kind"] == kind and key in h]
+            if pts:
+                ax.plot(*zip(*pts), **({"marker": "o", "label": f"val {key}"} if kind == "val"
+                                       else {"label": key}))
+        ax.set_title(title)
+        ax.set_xlabel("iteration")
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    tmp = path.with_name(path.name + ".tmp.png")
+    fig.savefig(tmp, dpi=70)
+    plt.close(fig)
+    tmp.replace(path)
