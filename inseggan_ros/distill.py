@@ -33,7 +33,7 @@ from tqdm import tqdm
 
 from . import checkpoint, losses
 from .model import pose_features
-from .segment import _mirror_poses, calibrate_tau, refine_poses, start_poses
+from .segment import _mirror_poses, refine_poses, start_poses
 
 
 @dataclass(frozen=True)
@@ -172,8 +172,9 @@ def distill(source, train_x: np.ndarray, val: dict | None, out, cfg: DistillConf
     gen = torch.Generator().manual_seed(cfg.seed)
     it, best, history, before = 0, -math.inf, [], 0.0
     if resume and (out / "last.pt").is_file():
-        last = checkpoint.load(out / "last.pt")["distill"]
-        E.load_state_dict(checkpoint.load(out / "last.pt")["encoder"])
+        saved = checkpoint.load(out / "last.pt")
+        last = saved["distill"]
+        E.load_state_dict(saved["encoder"])
         opt.load_state_dict(last["optimizer"])
         gen.set_state(last["generator"])
         it, best, history, before = last["iteration"], last["best"], last["history"], last["seconds"]
