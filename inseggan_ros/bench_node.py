@@ -47,11 +47,6 @@ def simulated_frames(count: int, width: int, height: int) -> list[np.ndarray]:
                 for k in range(count)]
 
 
-# The segmenter's test-time parameters the benchmark can set, and its flags for them.
-FLAGS = {"refine_steps": "refine_steps", "refine_hypotheses": "hypotheses", "refine_keep": "keep",
-         "smooth_iters": "smooth_iters", "smooth_full_res_iters": "full_res_smooth_iters"}
-
-
 def in_process_reference(frames, model_path: str, params: dict, repeats: int = 3) -> dict:
     """Inference alone and conversion alone, in this process (one thread), for comparison."""
     import torch
@@ -104,15 +99,15 @@ def main(argv=None) -> int:
                          "profile (config/fastdds_large_frames.xml)")
     args = ap.parse_args(argv)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    from .params import read_params_file
+    from .params import from_flags, read_params_file
 
     try:
         params = read_params_file(args.params_file) if args.params_file else {}
     except ValueError as e:
         print(f"bench-node: error: {e}", file=sys.stderr)
         return 2
-    params.update({name: getattr(args, flag) for name, flag in FLAGS.items()
-                   if getattr(args, flag) is not None})
+    flags = from_flags(args)
+    params.update(flags)
     from .dds import PROFILE_VARIABLES, use_large_frames_profile
 
     if args.default_transport:
@@ -153,9 +148,8 @@ def main(argv=None) -> int:
     model = ["-p", f"model_path:={args.model}"] if args.model else []
     if args.params_file:
         model += ["--params-file", str(args.params_file)]
-    for name, flag in FLAGS.items():
-        if getattr(args, flag) is not None:
-            model += ["-p", f"{name}:={getattr(args, flag)}"]
+    for name, value in flags.items():
+        model += ["-p", f"{name}:={value}"]
     seg = subprocess.Popen([_executable("segmenter"), "--ros-args", *model,
                             "-p", "latency_window:=100000",
                             "-r", "depth:=camera/depth/image_rect_raw"],

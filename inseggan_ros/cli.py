@@ -15,7 +15,6 @@ import argparse
 import json
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -223,14 +222,10 @@ def cmd_eval(args) -> int:
 
 def _settings(args, base):
     """InferenceConfig: `base`, then the --profile parameters file, then the explicit flags."""
-    from .params import apply, read_params_file
+    from .params import apply, from_flags, read_params_file
 
-    cfg = apply(base, read_params_file(args.profile)) if args.profile else base
-    for flag, name in (("refine_steps", "refine_steps"), ("hypotheses", "hypotheses"),
-                       ("keep", "keep")):
-        if getattr(args, flag) is not None:
-            cfg = replace(cfg, **{name: getattr(args, flag)})  # validates, naming the setting
-    return cfg.with_smoothing(args.smooth_iters, args.full_res_smooth_iters)
+    params = read_params_file(args.profile) if args.profile else {}
+    return apply(base, {**params, **from_flags(args)})  # validates, naming the setting
 
 
 def cmd_export(args) -> int:

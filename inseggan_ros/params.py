@@ -15,6 +15,15 @@ from pathlib import Path
 SETTINGS = {"refine_steps": "refine_steps", "refine_hypotheses": "hypotheses",
             "refine_keep": "keep", "smooth_iters": "iters",
             "smooth_full_res_iters": "full_res_iters"}
+# node parameter -> the command-line flag's argparse name (`inseggan eval/export`, bench_node)
+FLAGS = {"refine_steps": "refine_steps", "refine_hypotheses": "hypotheses", "refine_keep": "keep",
+         "smooth_iters": "smooth_iters", "smooth_full_res_iters": "full_res_smooth_iters"}
+
+
+def from_flags(args) -> dict:
+    """The node parameters that command-line flags set (flags left unset are absent)."""
+    return {name: getattr(args, flag) for name, flag in FLAGS.items()
+            if getattr(args, flag) is not None}
 
 
 def read_params_file(path) -> dict:

@@ -131,10 +131,8 @@ def _mirror_poses(pose: torch.Tensor, flip_x: bool, flip_y: bool) -> torch.Tenso
 
 
 @torch.no_grad()
-def start_poses(G, E, x: torch.Tensor, hypotheses: int = 1, z: torch.Tensor | None = None
-                ) -> torch.Tensor:
-    """(B, 1, 64, 64) inputs -> (B, H, n, 6) starting poses for `refine_poses` (`z`: E(x), if
-    already computed).
+def start_poses(G, E, x: torch.Tensor, hypotheses: int = 1) -> torch.Tensor:
+    """(B, 1, 64, 64) inputs -> (B, H, n, 6) starting poses for `refine_poses`.
 
     Hypothesis 0 is the encoder's estimate. The next (up to 3) are its estimates on the
     mirrored input (left-right, up-down, both), mapped back: test-time augmentation that gives
@@ -147,11 +145,7 @@ def start_poses(G, E, x: torch.Tensor, hypotheses: int = 1, z: torch.Tensor | No
     B = len(x)
     mirrors = MIRRORS[:hypotheses]
     inputs = [torch.flip(x, [d for d, f in ((3, fx), (2, fy)) if f]) for fx, fy in mirrors]
-    if z is not None:
-        inputs = inputs[1:]
-    codes = E(torch.cat(inputs)) if inputs else z  # one encoder pass for every mirror
-    if z is not None:
-        codes = torch.cat([z, codes]) if inputs else z
+    codes = E(torch.cat(inputs))  # one encoder pass for the input and all its mirrors
     pose = G.pose(codes.reshape(-1, codes.shape[-1])).reshape(len(mirrors), B, codes.shape[1], 6)
     pose = torch.stack([_mirror_poses(pose[i], fx, fy) for i, (fx, fy) in enumerate(mirrors)], 1)
     extra = hypotheses - len(mirrors)
@@ -320,11 +314,9 @@ def refine_poses(G, pose: torch.Tensor, x: torch.Tensor, steps: int, reseeds: in
             raise ValueError(f"keep must be >= 1, got {keep}")
         best = _fit_loss(G, pose, target, template).argsort(1)[:, :keep]
         pose, H = pose[torch.arange(B)[:, None], best], keep
-    if steps <= 0:
-        flat = pose.reshape(B * H, n, 6)
-    else:
+    flat = pose.reshape(B * H, n, 6)
+    if steps > 0:
         features = _pyramid_features(target).repeat_interleave(H, dim=0)
-        flat = pose.reshape(B * H, n, 6)
         rounds = reseeds + 1 if steps >= 2 * (reseeds + 1) else 1
         for r in range(rounds):
             iters = steps // rounds + (steps % rounds if r == rounds - 1 else 0)

@@ -164,13 +164,9 @@ class Segmenter(Node):
 
     def _settings(self):
         """The model's test-time settings (`InferenceConfig`) as the parameters now set them."""
-        from ..segment import InferenceConfig
+        from ..params import SETTINGS, apply
 
-        return InferenceConfig(
-            refine_steps=self.p["refine_steps"], hypotheses=self.p["refine_hypotheses"],
-            keep=self.p["refine_keep"],
-            smooth=replace(self.model.inference.smooth, iters=self.p["smooth_iters"],
-                           full_res_iters=self.p["smooth_full_res_iters"]))
+        return apply(self.model.inference, {name: self.p[name] for name in SETTINGS})
 
     # ------------------------------------------------------------------ parameters
     @staticmethod
