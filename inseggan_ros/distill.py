@@ -9,7 +9,7 @@ gains most of that:
      best fit; no ground truth is used), written in chunks to pseudo.pt, so a killed run resumes;
   2. the encoder is fine-tuned to predict them directly (G frozen): Hungarian-matched pose
      features (translation, and the axis up to sign: what a render depends on) plus the
-     real-frame reconstruction loss, each frame randomly mirrored with its poses.
+     real-frame reconstruction loss, each frame randomly mirrored or transposed with its poses.
 
     inseggan distill --checkpoint runs/cylinder_s1/best.pt --data data/cylinder \
         --out runs/cylinder_distill
@@ -33,7 +33,7 @@ from tqdm import tqdm
 
 from . import checkpoint, losses
 from .model import pose_features
-from .segment import _mirror_poses, refine_poses, start_poses
+from .segment import SYMMETRIES, refine_poses, start_poses, transform_image, transform_poses
 
 
 @dataclass(frozen=True)
@@ -91,17 +91,16 @@ def _save_atomic(obj, path: Path) -> None:
     tmp.replace(path)
 
 
-def _mirror_batch(x: torch.Tensor, pose: torch.Tensor, gen: torch.Generator):
-    """Each frame left-right and/or up-down mirrored at random, its poses with it."""
-    flips = torch.randint(0, 2, (len(x), 2), generator=gen).bool()
+def _symmetry_batch(x: torch.Tensor, pose: torch.Tensor, gen: torch.Generator):
+    """Each frame under a random one of the 8 symmetries of the square (mirrored and/or
+    transposed: `segment.SYMMETRIES`), its poses with it."""
+    pick = torch.randint(0, len(SYMMETRIES), (len(x),), generator=gen)
     x, pose = x.clone(), pose.clone()
-    for fx in (False, True):
-        for fy in (False, True):
-            sel = (flips[:, 0] == fx) & (flips[:, 1] == fy)
-            dims = [d for d, f in ((3, fx), (2, fy)) if f]
-            if sel.any() and dims:
-                x[sel] = torch.flip(x[sel], dims)
-                pose[sel] = _mirror_poses(pose[sel], fx, fy)
+    for k, sym in enumerate(SYMMETRIES[1:], 1):
+        sel = pick == k
+        if sel.any():
+            x[sel] = transform_image(x[sel], sym)
+            pose[sel] = transform_poses(pose[sel], sym)
     return x, pose
 
 
@@ -210,7 +209,7 @@ def distill(source, train_x: np.ndarray, val: dict | None, out, cfg: DistillConf
     stats = {}
     while it < cfg.iterations:
         idx = torch.randint(0, len(xt), (cfg.batch_size,), generator=gen)
-        xb, target = _mirror_batch(xt[idx], pseudo[idx], gen)
+        xb, target = _symmetry_batch(xt[idx], pseudo[idx], gen)
         z = E(xb)
         B, n, d = z.shape
         pose = G.pose(z.reshape(B * n, d)).reshape(B, n, 6)

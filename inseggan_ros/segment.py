@@ -115,43 +115,71 @@ def _reseed(G, pose: torch.Tensor, target: torch.Tensor, min_pixels: int) -> tor
 # How far the jittered starting points of multi-start refinement lie from the encoder's poses:
 # axis-angle (radians) and translation (x, y, height; image half-widths).
 HYPOTHESIS_JITTER = (0.6, 0.6, 0.6, 0.12, 0.12, 0.05)
-MIRRORS = ((False, False), (True, False), (False, True), (True, True))  # (flip x, flip y)
+# The 8 symmetries of the square image (the dihedral group D4) as (flip x, flip y, transpose):
+# the identity, the 3 mirror images, then the same transposed (x and y swapped).
+SYMMETRIES = tuple((fx, fy, tr) for tr in (False, True)
+                   for fx, fy in ((False, False), (True, False), (False, True), (True, True)))
 
 
-def _mirror_poses(pose: torch.Tensor, flip_x: bool, flip_y: bool) -> torch.Tensor:
-    """Poses estimated on a mirrored image -> poses in the original image. A reflection F maps
-    a rotation R(w) to F R F = R(-F w) and a translation t to F t. (The template itself is
-    mirrored too, which matters only for asymmetric templates: these are starting points.)"""
-    pose = pose.clone()
-    for flip, axis in ((flip_x, 0), (flip_y, 1)):
-        if flip:
-            pose[..., 3 + axis] *= -1
-            pose[..., [a for a in range(3) if a != axis]] *= -1
-    return pose
+def transform_image(x: torch.Tensor, sym: tuple[bool, bool, bool]) -> torch.Tensor:
+    """(..., H, W) images -> the same under the symmetry `sym` (mirrored, then transposed)."""
+    fx, fy, tr = sym
+    x = torch.flip(x, [d for d, f in ((-1, fx), (-2, fy)) if f]) if fx or fy else x
+    return x.transpose(-1, -2) if tr else x
+
+
+def _symmetry_matrix(sym: tuple[bool, bool, bool]) -> torch.Tensor:
+    """The signed permutation of x and y (3 x 3, height unchanged) that `sym` applies."""
+    fx, fy, tr = sym
+    S = torch.diag(torch.tensor([-1.0 if fx else 1.0, -1.0 if fy else 1.0, 1.0]))
+    return S[[1, 0, 2]] if tr else S
+
+
+def _map_poses(pose: torch.Tensor, S: torch.Tensor) -> torch.Tensor:
+    """(..., 6) poses -> axis S a and translation S t (S (..., 3, 3), broadcast)."""
+    from .model import pose_from_axis, rodrigues
+
+    axis = rodrigues(pose.reshape(-1, 6)[:, :3])[:, :, 0].reshape(*pose.shape[:-1], 3)
+    return pose_from_axis((S @ axis[..., None])[..., 0], (S @ pose[..., 3:, None])[..., 0])
+
+
+def transform_poses(pose: torch.Tensor, sym: tuple[bool, bool, bool],
+                    inverse: bool = False) -> torch.Tensor:
+    """(..., 6) poses in an image -> the poses that render `transform_image(image, sym)`; with
+    `inverse`, poses estimated on the transformed image -> poses in the original.
+
+    The symmetry is a signed permutation S of x and y; the rod's axis a and translation t map to
+    S a and S t (height unchanged). The templates are solids of revolution about their axis, so
+    the axis is all of the rotation that shows (`model.pose_from_axis`), and the mapping is exact
+    for any template, asymmetric ones (a bolt's head) included."""
+    S = _symmetry_matrix(sym)
+    return _map_poses(pose, (S.T if inverse else S).to(pose))
 
 
 @torch.no_grad()
 def start_poses(G, E, x: torch.Tensor, hypotheses: int = 1) -> torch.Tensor:
     """(B, 1, 64, 64) inputs -> (B, H, n, 6) starting poses for `refine_poses`.
 
-    Hypothesis 0 is the encoder's estimate. The next (up to 3) are its estimates on the
-    mirrored input (left-right, up-down, both), mapped back: test-time augmentation that gives
-    genuinely different guesses. Any more are the earlier ones jittered by HYPOTHESIS_JITTER (a
-    fixed random draw: deterministic). Measured on 100 cylinder validation frames, 30 steps:
-    mIoU 0.742 with 4 jittered starts, 0.754 with the 4 mirrors, 0.754-0.764 with 8
+    Hypothesis 0 is the encoder's estimate. The next (up to 7) are its estimates on the input
+    under the other symmetries of the square (`SYMMETRIES`: the 3 mirror images, then the 4
+    transposed ones), mapped back: test-time augmentation that gives genuinely different
+    guesses. Any more are the earlier ones jittered by HYPOTHESIS_JITTER (a fixed random draw:
+    deterministic). Measured on 100 cylinder validation frames, 30 steps: mIoU 0.742 with 4
+    jittered starts, 0.754 with the 4 mirrors; without refinement, the best-fitting start, 3
+    smoothing iterations: 0.740 of the 4 mirrors, 0.756 of all 8 symmetries
     (docs/experiments.md)."""
     if hypotheses < 1:
         raise ValueError(f"hypotheses must be >= 1, got {hypotheses}")
     B = len(x)
-    mirrors = MIRRORS[:hypotheses]
-    inputs = [torch.flip(x, [d for d, f in ((3, fx), (2, fy)) if f]) for fx, fy in mirrors]
-    codes = E(torch.cat(inputs))  # one encoder pass for the input and all its mirrors
-    pose = G.pose(codes.reshape(-1, codes.shape[-1])).reshape(len(mirrors), B, codes.shape[1], 6)
-    pose = torch.stack([_mirror_poses(pose[i], fx, fy) for i, (fx, fy) in enumerate(mirrors)], 1)
-    extra = hypotheses - len(mirrors)
+    syms = SYMMETRIES[:hypotheses]
+    codes = E(torch.cat([transform_image(x, sym) for sym in syms]))  # one encoder pass
+    pose = G.pose(codes.reshape(-1, codes.shape[-1])).reshape(len(syms), B, codes.shape[1], 6)
+    back = torch.stack([_symmetry_matrix(sym).T for sym in syms]).to(pose)  # the inverses
+    pose = torch.cat([pose[:1], _map_poses(pose[1:], back[1:, None, None])]).transpose(0, 1)
+    extra = hypotheses - len(syms)
     if extra > 0:
         gen = torch.Generator().manual_seed(0)
-        base = pose[:, torch.arange(extra) % len(mirrors)]
+        base = pose[:, torch.arange(extra) % len(syms)]
         jitter = torch.randn(base.shape, generator=gen) * torch.tensor(HYPOTHESIS_JITTER)
         pose = torch.cat([pose, base + jitter.to(pose)], 1)
     return pose
@@ -344,7 +372,7 @@ def infer(G, E, x: torch.Tensor, filtered: bool | None = None, refine_steps: int
     starts to choose from; for the learned renderer `refine` on the codes, from the encoder's
     codes only)."""
     if hasattr(G, "render_poses") and (refine_steps > 0 or hypotheses > 1):
-        # the input and its mirrors through the encoder in one batch
+        # the input and its symmetric images through the encoder in one batch
         pose = refine_poses(G, start_poses(G, E, x, hypotheses), x, refine_steps, keep=keep)
         renders = G.render_poses(pose)
         return {"pose": pose, "renders": renders, "reconstruction": G.zbuffer(renders)}
@@ -415,7 +443,7 @@ class InferenceConfig:
 
     refine_steps: Levenberg-Marquardt iterations in all (`refine_poses`; 0 = the starting
     poses as they are); hypotheses: starting points (`start_poses`: the encoder's poses, then
-    those on mirrored inputs, then jittered ones); keep: how many of them, the best-fitting
+    those on its mirrored and transposed images, then jittered ones); keep: how many of them, the best-fitting
     first, are refined (0 = all); smooth: label smoothing (`SmoothConfig`)."""
     refine_steps: int = 0
     hypotheses: int = 1

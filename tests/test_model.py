@@ -268,8 +268,9 @@ def test_multi_start_refinement_never_fits_worse_than_one_start():
                                  F.adaptive_avg_pool2d(x, 32), 3, per_frame=True)
 
     one = fit(refine_poses(G, start_poses(G, E, x, 1), x, 12))
-    starts = start_poses(G, E, x, 6)  # the encoder's, 3 mirrored, 2 jittered
+    starts = start_poses(G, E, x, 6)  # the encoder's, 3 mirrored, 2 transposed
     assert starts.shape == (4, 6, 3, 6)
+    assert torch.equal(start_poses(G, E, x, 10)[:, :6], starts)  # then 2 jittered
     assert torch.equal(starts[:, 0], start_poses(G, E, x, 1)[:, 0])
     multi_pose = refine_poses(G, starts, x, 12)
     multi = fit(multi_pose)
@@ -352,22 +353,27 @@ def test_levenberg_marquardt_refinement_recovers_known_poses():
     assert (losses_by_iter[-1] < 0.2 * losses_by_iter[0]).all()
 
 
-def test_mirrored_poses_render_the_mirrored_image():
-    """A pose estimated on a flipped image maps back to the pose that renders the original: the
-    render of the mapped pose equals the flipped render of the estimated one (symmetric rod)."""
+@pytest.mark.parametrize("profile", ["free", "monotone"])
+def test_transformed_poses_render_the_transformed_image(profile):
+    """Under each of the 8 symmetries of the square (mirrored, transposed), the mapped poses
+    render the transformed image, and the inverse mapping brings them back: exact for any
+    solid of revolution, a rod with a thicker head (monotone radii) too."""
     from inseggan_ros.model import make_generator
-    from inseggan_ros.segment import _mirror_poses
+    from inseggan_ros.segment import SYMMETRIES, transform_image, transform_poses
 
-    cfg = ModelConfig(renderer="spheres", composite="zbuffer", spheres=4, **SMALL)
+    cfg = ModelConfig(renderer="spheres", composite="zbuffer", spheres=4, radius_profile=profile,
+                      **SMALL)
     G = make_generator(cfg)
+    assert len(set(SYMMETRIES)) == 8
     with torch.no_grad():
-        G.radius_shape.fill_(50.0)  # equal radii: the rod is mirror-symmetric
+        G.radius_shape.copy_(torch.tensor([50.0, -3.0, -3.0, -3.0]))  # a head at one end
         pose = torch.randn(2, 3, 6) * torch.tensor([0.8, 0.8, 0.8, 0.3, 0.3, 0.1])
         img = G.render_poses(pose)
-        for fx, fy in ((True, False), (False, True), (True, True)):
-            dims = [d for d, f in ((3, fx), (2, fy)) if f]
-            mirrored = G.render_poses(_mirror_poses(pose, fx, fy))
-            assert (mirrored - torch.flip(img, dims)).abs().max() < 1e-4
+        for sym in SYMMETRIES:
+            moved = transform_poses(pose, sym)
+            assert (G.render_poses(moved) - transform_image(img, sym)).abs().max() < 1e-4, sym
+            back = G.render_poses(transform_poses(moved, sym, inverse=True))
+            assert (back - img).abs().max() < 1e-4, sym
 
 
 def test_written_out_adam_matches_torch_adam():

@@ -243,8 +243,9 @@ class Segmenter(Node):
                 "(default: the model's; each costs about 1.4 ms for one refined starting point, "
                 "0.6 ms a point with 8, on one CPU thread)", int_range=(0, 500))),
             "refine_hypotheses": (int(cfg.hypotheses), d(
-                "starting points: the encoder's poses, those on the mirrored inputs (up to 4), "
-                "then jittered ones; the best-fitting is kept (default: the model's)",
+                "starting points: the encoder's poses, those on the mirrored and transposed "
+                "inputs (up to 8), then jittered ones; the best-fitting is kept (default: the "
+                "model's)",
                 int_range=(1, 32))),
             "refine_keep": (int(cfg.keep), d(
                 "how many of the starting points, the best-fitting first, are refined; 0 = all "
