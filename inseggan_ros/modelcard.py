@@ -60,7 +60,7 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, inference=None,
     x = torch.from_numpy(val["x"])
     renders = torch.cat([infer(seg.G, seg.E, x[i:i + 50], refine_steps=inference.refine_steps,
                                hypotheses=inference.hypotheses,
-                               keep=inference.keep or None)["renders"]
+                               keep=inference.keep)["renders"]
                          for i in range(0, len(x), 50)])
     tau, scores = calibrate_tau(renders, torch.from_numpy(val["fg"]), val["labels"])
     seg.tau = tau

@@ -320,14 +320,14 @@ def _fit_loss(G, pose: torch.Tensor, target: torch.Tensor, template) -> torch.Te
 
 @torch.no_grad()
 def refine_poses(G, pose: torch.Tensor, x: torch.Tensor, steps: int, reseeds: int = 2,
-                 size: int = 32, keep: int | None = None) -> torch.Tensor:
+                 size: int = 32, keep: int = 0) -> torch.Tensor:
     """Analysis by synthesis at test time, on the poses themselves (generators with explicit
     templates): `steps` Levenberg-Marquardt iterations in all (`_lm_fit`) on the n poses of
     each frame so that the z-buffered composite matches the input at size x size (L1 over a
     3-level pyramid), in `reseeds` + 1 rounds; between rounds the least visible instance is
     moved onto the largest unexplained part of the input (`_reseed`).
 
-    `pose`: (B, H, n, 6) starting points (`start_poses`). `keep` (default: all H) of them,
+    `pose`: (B, H, n, 6) starting points (`start_poses`). `keep` (0, the default: all H) of them,
     the best-fitting, are refined side by side; each frame then keeps the one that fits its
     input best (multi-start). Every scene is fitted on its own, so hypothesis 0 follows exactly
     the path it would follow alone and more hypotheses never fit worse. Choosing the start
@@ -337,9 +337,9 @@ def refine_poses(G, pose: torch.Tensor, x: torch.Tensor, steps: int, reseeds: in
     B, H, n, _ = pose.shape
     template = G.spheres()  # fixed while the poses move: computed once
     target = F.adaptive_avg_pool2d(x, size)
-    if keep is not None and keep < H:
-        if keep < 1:
-            raise ValueError(f"keep must be >= 1, got {keep}")
+    if keep < 0:
+        raise ValueError(f"keep must be >= 0 (0 = all), got {keep}")
+    if 0 < keep < H:
         best = _fit_loss(G, pose, target, template).argsort(1)[:, :keep]
         pose, H = pose[torch.arange(B)[:, None], best], keep
     flat = pose.reshape(B * H, n, 6)
@@ -361,7 +361,7 @@ def refine_poses(G, pose: torch.Tensor, x: torch.Tensor, steps: int, reseeds: in
 
 @torch.no_grad()
 def infer(G, E, x: torch.Tensor, filtered: bool | None = None, refine_steps: int = 0,
-          hypotheses: int = 1, keep: int | None = None) -> dict:
+          hypotheses: int = 1, keep: int = 0) -> dict:
     """(B, 1, 64, 64) inputs -> single-instance renders (B, n, 64, 64), reconstruction, and the
     codes ("z") or, with test-time refinement, the poses ("pose").
 
@@ -665,7 +665,7 @@ class Segmenter:
         cfg = self.inference if settings is None else settings
         x = torch.as_tensor(x, dtype=torch.float32, device=self.device)
         out = infer(self.G, self.E, x, refine_steps=cfg.refine_steps, hypotheses=cfg.hypotheses,
-                    keep=cfg.keep or None)
+                    keep=cfg.keep)
         fg_t = (x[:, 0] > -1 + 1e-4) if fg is None else torch.as_tensor(fg, device=self.device)
         labels = labels_from_renders(out["renders"], tau, fg_t)
         labels = smooth_labels(labels, x, out["renders"].shape[1], cfg.smooth)

@@ -304,7 +304,8 @@ def test_refining_only_the_best_fitting_start():
                                refine_poses(G, chosen[:, None], x, 6))
     torch.testing.assert_close(refine_poses(G, starts, x, 6, keep=4), refine_poses(G, starts, x, 6))
     with pytest.raises(ValueError, match="keep"):
-        refine_poses(G, starts, x, 6, keep=0)
+        refine_poses(G, starts, x, 6, keep=-1)
+    torch.testing.assert_close(refine_poses(G, starts, x, 6, keep=0), refine_poses(G, starts, x, 6))
 
 
 def test_inference_config_validates_and_reads_old_checkpoints():
