@@ -35,6 +35,25 @@ def run_cli(*args, timeout=300, check=False) -> subprocess.CompletedProcess:
     return proc
 
 
+def _param_client(*args) -> str:
+    p = subprocess.run([sys.executable, str(Path(__file__).parent / "param_client.py"),
+                        *map(str, args)], capture_output=True, text=True, timeout=90)
+    return p.stdout.strip()
+
+
+def set_param(node: str, name: str, value: str) -> str:
+    """Set a running node's parameter from another process (value: a Python literal)
+    -> 'ok' or 'rejected: <reason>'."""
+    return _param_client("set", node, name, value)
+
+
+def get_params(node: str, *names: str) -> dict:
+    """A running node's parameters, read from another process."""
+    import json
+
+    return json.loads(_param_client("get", node, *names))
+
+
 @pytest.fixture
 def tmp(tmp_path):
     return tmp_path

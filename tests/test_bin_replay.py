@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import BAGS, installed_executable
+from conftest import BAGS, installed_executable, set_param
 
 from inseggan_ros import bags
 from inseggan_ros.image_codec import metres_to_depth
@@ -134,15 +134,11 @@ def test_bad_parameters_fail_at_start_with_one_clear_line(params, message):
 def test_parameter_changes_are_validated_at_run_time():
     replay = start_replay("/params", "rate:=5.0")
     try:
-        def set_param(name, value):
-            p = subprocess.run([sys.executable, str(HERE / "set_param.py"), "/params/bin_replay",
-                                name, value], capture_output=True, text=True, timeout=60)
-            return p.stdout.strip()
-
-        assert set_param("rate", "20.0") == "ok"
-        assert set_param("rate", "0.0").startswith("rejected: parameter rate=0.0 invalid")
-        assert set_param("rate", "5000.0").startswith("rejected")  # outside 0..1000
-        assert set_param("object", "'bolt'").startswith("rejected")  # read-only
+        node = "/params/bin_replay"
+        assert set_param(node, "rate", "20.0") == "ok"
+        assert set_param(node, "rate", "0.0").startswith("rejected: parameter rate=0.0 invalid")
+        assert set_param(node, "rate", "5000.0").startswith("rejected")  # outside 0..1000
+        assert set_param(node, "object", "'bolt'").startswith("rejected")  # read-only
         assert replay.poll() is None, "the node keeps running"
     finally:
         assert stop(replay) == 0

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import BAGS, REPO, installed_executable
+from conftest import BAGS, REPO, get_params, installed_executable, set_param
 
 from inseggan_ros import bags, image_codec
 from inseggan_ros.baselines import kmeans
@@ -203,24 +203,21 @@ def test_an_incompatible_model_file_stops_the_node(tmp):
 
 def test_parameter_changes_are_validated_at_run_time():
     seg = start_segmenter("/seg_params")
-
-    def set_param(name, value):
-        p = subprocess.run([sys.executable, str(HERE / "set_param.py"), "/seg_params/segmenter",
-                            name, value], capture_output=True, text=True, timeout=60)
-        return p.stdout.strip()
-
     try:
-        assert set_param("tau", "-0.5") == "ok"
-        assert set_param("tau", "2.0").startswith("rejected")  # outside -1..1
-        assert set_param("roi", "[10, 10, 5, 50]").startswith("rejected: roi [10, 10, 5, 50] invalid")
-        assert set_param("roi", "[10, 10, 200, 200]") == "ok"
-        assert set_param("bin_polygon", "[1.0, 2.0]").startswith("rejected: bin_polygon")
-        assert set_param("model_path", "'other.pt'").startswith("rejected")  # read-only
-        assert set_param("smooth_iters", "5") == "ok"
-        assert set_param("smooth_iters", "-1").startswith("rejected")  # outside 0..200
-        assert set_param("rim_band", "0.0") == "ok"
-        assert set_param("rim_band", "1.5").startswith("rejected")  # outside 0..1
-        assert set_param("rim_step", "0.0").startswith("rejected")  # outside 0.0001..0.1
+        def set_(name, value):
+            return set_param("/seg_params/segmenter", name, value)
+
+        assert set_("tau", "-0.5") == "ok"
+        assert set_("tau", "2.0").startswith("rejected")  # outside -1..1
+        assert set_("roi", "[10, 10, 5, 50]").startswith("rejected: roi [10, 10, 5, 50] invalid")
+        assert set_("roi", "[10, 10, 200, 200]") == "ok"
+        assert set_("bin_polygon", "[1.0, 2.0]").startswith("rejected: bin_polygon")
+        assert set_("model_path", "'other.pt'").startswith("rejected")  # read-only
+        assert set_("smooth_iters", "5") == "ok"
+        assert set_("smooth_iters", "-1").startswith("rejected")  # outside 0..200
+        assert set_("rim_band", "0.0") == "ok"
+        assert set_("rim_band", "1.5").startswith("rejected")  # outside 0..1
+        assert set_("rim_step", "0.0").startswith("rejected")  # outside 0.0001..0.1
     finally:
         assert stop(seg) == 0
 
@@ -239,13 +236,8 @@ def test_shipped_parameter_files_set_the_segmenter(profile):
             "--params-file", str(path), "-p", "tau:=-0.3"]
     seg = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        p = subprocess.run([sys.executable, str(HERE / "get_params.py"), f"{ns}/segmenter",
-                            *wanted, "tau"], capture_output=True, text=True, timeout=90)
-        got = json.loads(p.stdout)
-        assert got == {**wanted, "tau": -0.3}
-        set_param = [sys.executable, str(HERE / "set_param.py"), f"{ns}/segmenter"]
-        assert subprocess.run([*set_param, "refine_keep", "-1"], capture_output=True, text=True,
-                              timeout=60).stdout.startswith("rejected")  # outside 0..32
+        assert get_params(f"{ns}/segmenter", *wanted, "tau") == {**wanted, "tau": -0.3}
+        assert set_param(f"{ns}/segmenter", "refine_keep", "-1").startswith("rejected")  # 0..32
     finally:
         assert stop(seg) == 0
 
