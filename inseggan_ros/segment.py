@@ -556,8 +556,8 @@ def smooth_full(labels: np.ndarray, depth_m: np.ndarray, floor_depth: float, max
     FULL_RES_MAX_CELL pixels per model pixel."""
     if cfg.iters == 0 or cfg.full_res_iters == 0 or not labels.any():
         return labels
-    ys, xs = np.nonzero(labels)
-    Y0, Y1, X0, X1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+    ys, xs = np.flatnonzero(labels.any(1)), np.flatnonzero(labels.any(0))  # the labels' box
+    Y0, Y1, X0, X1 = ys[0], ys[-1] + 1, xs[0], xs[-1] + 1
     side = max(roi[2] - roi[0], roi[3] - roi[1])
     step = int(np.ceil(side / (FULL_RES_MAX_CELL * model_size)))
     lab = labels[Y0:Y1:step, X0:X1:step]
