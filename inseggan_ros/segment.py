@@ -534,7 +534,9 @@ def smooth_frame(lab: np.ndarray, h: np.ndarray, n: int, cfg: SmoothConfig) -> n
     moving_t = torch.from_numpy(moving)
     unary = q[moving_t]
     for _ in range(cfg.iters):
-        q[moving_t] = torch.softmax(unary + pair @ q, dim=1)
+        x = unary + pair @ q
+        x = x.sub_(x.amax(1, keepdim=True)).exp_()  # softmax over the labels, written out:
+        q[moving_t] = x.div_(x.sum(1, keepdim=True))  # torch.softmax is 4x slower for 5 columns
     out = lab.copy()
     out[rows[moving], cols[moving]] = q[moving_t].argmax(1).numpy() + 1
     return out
