@@ -232,7 +232,7 @@ def test_parameter_changes_are_validated_at_run_time():
         assert stop(seg) == 0
 
 
-@pytest.mark.parametrize("profile", ["realtime", "quality"])
+@pytest.mark.parametrize("profile", ["realtime", "fastest", "quality"])
 def test_shipped_parameter_files_set_the_segmenter(profile):
     """config/<profile>.yaml, as installed, applies to the segmenter in any namespace (its
     `/**/segmenter` section), and a -p after it still wins."""
