@@ -327,8 +327,8 @@ def refine_poses(G, pose: torch.Tensor, x: torch.Tensor, steps: int, reseeds: in
     3-level pyramid), in `reseeds` + 1 rounds; between rounds the least visible instance is
     moved onto the largest unexplained part of the input (`_reseed`).
 
-    `pose`: (B, H, n, 6) starting points (`start_poses`). `keep` (0, the default: all H) of them,
-    the best-fitting, are refined side by side; each frame then keeps the one that fits its
+    `pose`: (B, H, n, 6) starting points (`start_poses`). `keep` (0, the default: all H) of
+    them, the best-fitting, are refined side by side; each frame then keeps the one that fits its
     input best (multi-start). Every scene is fitted on its own, so hypothesis 0 follows exactly
     the path it would follow alone and more hypotheses never fit worse. Choosing the start
     before refining (`keep` 1) costs one render per start instead of a refinement per start.
@@ -443,8 +443,8 @@ class InferenceConfig:
 
     refine_steps: Levenberg-Marquardt iterations in all (`refine_poses`; 0 = the starting
     poses as they are); hypotheses: starting points (`start_poses`: the encoder's poses, then
-    those on its mirrored and transposed images, then jittered ones); keep: how many of them, the best-fitting
-    first, are refined (0 = all); smooth: label smoothing (`SmoothConfig`)."""
+    those on its mirrored and transposed images, then jittered ones); keep: how many of them,
+    the best-fitting first, are refined (0 = all); smooth: label smoothing (`SmoothConfig`)."""
     refine_steps: int = 0
     hypotheses: int = 1
     keep: int = 0
