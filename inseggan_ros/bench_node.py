@@ -205,7 +205,7 @@ def main(argv=None) -> int:
           f"Fast DDS: {profile})")
     print(f"  settings: {cfg.refine_steps} refinement iterations, {cfg.hypotheses} starting "
           f"points ({cfg.keep or 'all'} refined), smoothing {cfg.smooth.iters} + "
-          f"{cfg.smooth.full_res_iters if cfg.smooth.iters else 0} at full resolution"
+          f"{cfg.smooth.full_res_active} at full resolution"
           + (f" (params file {args.params_file})" if args.params_file else ""))
     print(f"  frames: sent {len(sent)}, answered {len(got)} ({100 * len(got) / max(len(sent), 1):.1f} %),"
           f" dropped {len(sent) - len(got)} (node received about {received}; skipped "

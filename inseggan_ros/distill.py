@@ -79,16 +79,10 @@ def pseudo_labels(G, E, x: np.ndarray, cfg: DistillConfig, path: Path,
             xb = torch.from_numpy(x[i:i + cfg.chunk])
             parts.append(refine_poses(G, start_poses(G, E, xb, cfg.hypotheses), xb,
                                       cfg.refine_steps))
-            _save_atomic({"settings": settings, "poses": torch.cat(parts)}, path)
+            checkpoint.save(path, {"settings": settings, "poses": torch.cat(parts)})  # atomic
             bar.update(len(xb))
     bar.close()
     return torch.cat(parts)[:len(x)]
-
-
-def _save_atomic(obj, path: Path) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    torch.save(obj, tmp)
-    tmp.replace(path)
 
 
 def _symmetry_batch(x: torch.Tensor, pose: torch.Tensor, gen: torch.Generator):

@@ -113,7 +113,7 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, inference=None,
         "hardware": f"{platform.machine()} CPU, {os.cpu_count()} cores (torch threads: 1)",
         "tau": tau, "refine_steps": inference.refine_steps, "hypotheses": inference.hypotheses,
         "smooth_iters": inference.smooth.iters, "keep": inference.keep,
-        "full_res_smooth_iters": inference.smooth.full_res_iters if inference.smooth.iters else 0,
+        "full_res_smooth_iters": inference.smooth.full_res_active,
         "also": {k: v.to_dict() for k, v in (also or {}).items()},
         "distillation": _distill_record(state),
         "precision": precision,
@@ -185,8 +185,9 @@ def full_resolution_scores(seg, bag_path) -> dict:
 
 
 def _settings_text(d: dict) -> str:
-    smooth = d["smooth"]
-    full = smooth.get("full_res_iters", 10) if smooth["iters"] else 0
+    from .segment import InferenceConfig
+
+    smooth = InferenceConfig.from_dict(d).smooth
     if d["refine_steps"] == 0:
         start = (f"no refinement, the best-fitting of {d['hypotheses']} starting points"
                  if d["hypotheses"] > 1 else "no refinement")
@@ -194,7 +195,8 @@ def _settings_text(d: dict) -> str:
         keep = f", the best-fitting {d['keep']} refined" if d.get("keep") else ""
         start = (f"{d['refine_steps']} refinement iterations from {d['hypotheses']} starting "
                  f"point(s){keep}")
-    return f"{start}, {smooth['iters']} smoothing iterations + {full} at full resolution"
+    return (f"{start}, {smooth.iters} smoothing iterations + {smooth.full_res_active} at full "
+            "resolution")
 
 
 def _distill_line(card: dict) -> list[str]:

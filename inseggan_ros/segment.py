@@ -425,6 +425,11 @@ class SmoothConfig:
     weight: float = 3.0
     full_res_iters: int = 10  # then at the input's resolution near boundaries (`smooth_full`)
 
+    @property
+    def full_res_active(self) -> int:
+        """The full-resolution iterations that run: none when smoothing is off."""
+        return self.full_res_iters if self.iters else 0
+
     def __post_init__(self):
         for name, ok, valid in (("iters", self.iters >= 0, ">= 0"),
                                 ("full_res_iters", self.full_res_iters >= 0, ">= 0"),
@@ -556,7 +561,7 @@ def smooth_full(labels: np.ndarray, depth_m: np.ndarray, floor_depth: float, max
     """Full-resolution labels (upsampled from the model's grid, hence blocky) -> labels whose
     boundaries follow the input's own height edges (`smooth_frame`), on a grid of at most
     FULL_RES_MAX_CELL pixels per model pixel."""
-    if cfg.iters == 0 or cfg.full_res_iters == 0 or not labels.any():
+    if cfg.full_res_active == 0 or not labels.any():
         return labels
     ys, xs = np.flatnonzero(labels.any(1)), np.flatnonzero(labels.any(0))  # the labels' box
     Y0, Y1, X0, X1 = ys[0], ys[-1] + 1, xs[0], xs[-1] + 1

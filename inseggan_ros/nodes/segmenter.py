@@ -256,7 +256,7 @@ class Segmenter(Node):
                 "model's; 0 = off, also at full resolution)", int_range=(0, 200))),
             "smooth_full_res_iters": (int(cfg.smooth.full_res_iters), d(
                 "then iterations at the input's resolution near instance boundaries (default: "
-                "the model's; 0 = off; 10 cost about 14 ms a 1280 x 720 frame on one CPU "
+                "the model's; 0 = off; 10 cost about 4-5 ms a 1280 x 720 frame on one CPU "
                 "thread)", int_range=(0, 200))),
             "publish_masks": (True, d("publish ~/masks")),
             "publish_overlay": (True, d("publish ~/overlay (computed only when subscribed)")),
