@@ -32,7 +32,7 @@ import torch
 from tqdm import tqdm
 
 from . import checkpoint, losses
-from .model import pose_features
+from .model import Encoder, ModelConfig, pose_features
 from .segment import SYMMETRIES, refine_poses, start_poses, transform_image, transform_poses
 
 
@@ -50,6 +50,7 @@ class DistillConfig:
     eval_every: int = 500
     eval_frames: int = 100
     seed: int = 0
+    encoder_nf: int = 0  # 0: fine-tune the source's encoder; else a new one this wide, from scratch
 
     def __post_init__(self):
         for name in ("frames", "refine_steps", "hypotheses", "chunk", "iterations", "batch_size",
@@ -59,6 +60,9 @@ class DistillConfig:
         if not self.lr > 0 or not self.lambda_real >= 0:
             raise ValueError(f"lr {self.lr!r} must be > 0 and lambda_real {self.lambda_real!r} "
                              ">= 0")
+        if self.encoder_nf != 0 and (self.encoder_nf < 8 or self.encoder_nf % 8):
+            raise ValueError(f"encoder_nf {self.encoder_nf!r} invalid; valid: 0 (fine-tune the "
+                             "source's encoder) or a multiple of 8, >= 8")
 
 
 def pseudo_labels(G, E, x: np.ndarray, cfg: DistillConfig, path: Path,
@@ -96,6 +100,38 @@ def _symmetry_batch(x: torch.Tensor, pose: torch.Tensor, gen: torch.Generator):
             x[sel] = transform_image(x[sel], sym)
             pose[sel] = transform_poses(pose[sel], sym)
     return x, pose
+
+
+def narrowed(E: Encoder, nf: int) -> Encoder:
+    """A copy of encoder E with width `nf` (`ModelConfig.encoder_nf`), a starting point for
+    distillation (channel pruning): of each convolution's output channels it keeps those that
+    carry most downstream, |instance-norm scale| x the L1 norm of the next convolution's weights
+    on the channel, with their weights."""
+    cfg = E.cfg
+    new = Encoder(ModelConfig(**{**asdict(cfg), "encoder_nf": nf}))
+    layers = list(E.derender) + list(E.head)
+    new_layers = list(new.derender) + list(new.head)
+    convs = [i for i, m in enumerate(layers) if isinstance(m, torch.nn.Conv2d)]
+    with torch.no_grad():
+        keep_in = torch.arange(layers[convs[0]].in_channels)  # the image (and coordinates)
+        for k, i in enumerate(convs):
+            conv, out = layers[i], new_layers[i]
+            after = layers[i + 1] if i + 1 < len(layers) else None
+            norm = after if isinstance(after, torch.nn.InstanceNorm2d) else None
+            if k + 1 < len(convs):
+                score = layers[convs[k + 1]].weight.abs().sum((0, 2, 3))
+                if norm is not None:
+                    score = score * norm.weight.abs()
+                keep = score.argsort(descending=True)[:out.out_channels].sort().values
+            else:
+                keep = torch.arange(conv.out_channels)  # the codes
+            out.weight.copy_(conv.weight[keep][:, keep_in])
+            out.bias.copy_(conv.bias[keep])
+            if norm is not None:
+                new_layers[i + 1].weight.copy_(norm.weight[keep])
+                new_layers[i + 1].bias.copy_(norm.bias[keep])
+            keep_in = keep
+    return new
 
 
 # Heights outside [SUNK, RAISED] (image half-widths) all render the same: below, the rod is out
@@ -159,7 +195,10 @@ def distill(source, train_x: np.ndarray, val: dict | None, out, cfg: DistillConf
     tau = float(state.get("tau", -0.5))
     x = np.ascontiguousarray(train_x[:cfg.frames], dtype=np.float32)
     torch.manual_seed(cfg.seed)
-    pseudo = pseudo_labels(G, E, x, cfg, out / "pseudo.pt", progress)
+    pseudo = pseudo_labels(G, E, x, cfg, out / "pseudo.pt", progress)  # the source's encoder
+    if cfg.encoder_nf:  # an encoder of another width, pruned from this one, on the same labels
+        state = {**state, "model_config": {**state["model_config"], "encoder_nf": cfg.encoder_nf}}
+        E = narrowed(E, cfg.encoder_nf)
     xt = torch.from_numpy(x)
     opt = torch.optim.Adam(E.parameters(), cfg.lr, betas=(0.5, 0.999))
     gen = torch.Generator().manual_seed(cfg.seed)

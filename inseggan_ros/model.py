@@ -36,6 +36,7 @@ class ModelConfig:
     n_instances: int = 5
     latent_dim: int = 128
     nf: int = 64
+    encoder_nf: int = 0  # the encoder's width (0: nf); a narrower one is faster at test time
     image_size: int = 64
     composite: str = "average"  # "average" (paper) or "zbuffer" (render alone, nearest wins)
     rotation_std: float = 1.0  # initial spread of decoded rotations, radians
@@ -59,6 +60,9 @@ class ModelConfig:
             raise ValueError(f"image_size must be 64 (the architecture's size), got {self.image_size}")
         if self.nf < 8 or self.nf % 8:
             raise ValueError(f"nf must be a multiple of 8 and >= 8, got {self.nf}")
+        if self.encoder_nf != 0 and (self.encoder_nf < 8 or self.encoder_nf % 8):
+            raise ValueError(f"encoder_nf must be 0 (= nf) or a multiple of 8 and >= 8, got "
+                             f"{self.encoder_nf}")
         if self.latent_dim < 8 or self.latent_dim % 4:
             raise ValueError(f"latent_dim must be a multiple of 4 and >= 8, got {self.latent_dim}")
         if not 1 <= self.n_instances <= 20:
@@ -67,6 +71,9 @@ class ModelConfig:
             raise ValueError(f"composite {self.composite!r} invalid; valid: average, zbuffer")
         if self.renderer not in RENDERERS:
             raise ValueError(f"renderer {self.renderer!r} invalid; valid: {', '.join(RENDERERS)}")
+        if self.renderer == "learned" and self.encoder_nf not in (0, self.nf):
+            raise ValueError("the learned renderer's L_i compares encoder and generator features: "
+                             f"encoder_nf must be 0 or nf ({self.nf}), got {self.encoder_nf}")
         if self.renderer != "learned" and self.composite != "zbuffer":
             raise ValueError(f"the {self.renderer} renderer has no features to average: use "
                              "composite='zbuffer'")
@@ -439,14 +446,15 @@ class Encoder(nn.Module):
     def __init__(self, cfg: ModelConfig):
         super().__init__()
         self.cfg = cfg
-        layers = _trunk(cfg.nf)
+        nf = cfg.encoder_nf or cfg.nf
+        layers = _trunk(nf)
         if cfg.coord_conv:  # the image plus its x and y coordinates (CoordConv)
-            layers[0] = nn.Conv2d(3, cfg.nf, 4, 2, 1)
+            layers[0] = nn.Conv2d(3, nf, 4, 2, 1)
             r = torch.linspace(-1, 1, cfg.image_size)
             grid = torch.stack(torch.meshgrid(r, r, indexing="xy"))[None]
             self.register_buffer("coords", grid, persistent=False)
         self.derender = nn.Sequential(*layers[:5])  # -> (2nf, 16, 16), compared with mean F
-        self.head = nn.Sequential(*layers[5:], nn.Conv2d(8 * cfg.nf, cfg.n_instances * cfg.latent_dim, 4, 1, 0))
+        self.head = nn.Sequential(*layers[5:], nn.Conv2d(8 * nf, cfg.n_instances * cfg.latent_dim, 4, 1, 0))
         init_weights(self)
 
     def forward(self, x: torch.Tensor, return_features: bool = False):

@@ -9,7 +9,8 @@ from conftest import run_cli
 
 from inseggan_ros import checkpoint, losses
 from inseggan_ros.data import load_sim_split
-from inseggan_ros.distill import _features
+from inseggan_ros.distill import _features, narrowed
+from inseggan_ros.model import Encoder, ModelConfig
 
 MODEL = Path(__file__).resolve().parents[1] / "models" / "cylinder" / "model.pt"
 
@@ -71,3 +72,42 @@ def test_distill_refuses_a_learned_renderer_and_a_missing_checkpoint(tmp, cyl_da
                 "--out", tmp / "d2", "--frames", "8", "--quiet")
     assert p.returncode == 2 and "no such model file" in p.stderr
     assert not (tmp / "d2" / "pseudo.pt").exists()
+
+
+def test_a_narrower_encoder_pruned_from_the_source_learns_the_refined_poses(tmp, cyl_data):
+    """`--encoder-nf`: an encoder of another width (faster at test time), pruned from the
+    source's (`narrowed`), then distilled."""
+    out = tmp / "s"
+    run_cli("distill", "--checkpoint", MODEL, "--data", cyl_data, "--out", out, "--frames", "32",
+            "--refine-steps", "4", "--hypotheses", "2", "--iterations", "150", "--eval-every",
+            "150", "--encoder-nf", "16", "--quiet", check=True, timeout=600)
+    state = checkpoint.load(out / "last.pt")
+    assert state["model_config"]["encoder_nf"] == 16
+    assert state["encoder"]["derender.0.weight"].shape[0] == 16
+    pseudo = torch.load(out / "pseudo.pt", weights_only=False)["poses"]
+    x = torch.from_numpy(load_sim_split(cyl_data, "train", limit=32)["x"])
+    pruned = tmp / "pruned.pt"  # the starting point: pruned, not yet trained
+    _, _, E = checkpoint.build_models(checkpoint.load(MODEL))
+    checkpoint.save(pruned, {**state, "encoder": narrowed(E, 16).state_dict()})
+    before, after = _pose_loss(pruned, x, pseudo), _pose_loss(out / "last.pt", x, pseudo)
+    # measured here: 0.107 -> 0.033
+    assert after < 0.6 * before, f"pose error to the refined poses: {before:.4f} -> {after:.4f}"
+    seg = checkpoint.load_for_inference(out / "last.pt", device="cpu")
+    assert seg.E.cfg.encoder_nf == 16 and seg.segment_batch(x[:2])["labels"].shape == (2, 64, 64)
+    p = run_cli("distill", "--checkpoint", MODEL, "--data", cyl_data, "--out", tmp / "bad",
+                "--frames", "8", "--encoder-nf", "12", "--quiet")
+    assert p.returncode == 2 and "encoder_nf 12 invalid" in p.stderr
+
+
+def test_narrowing_keeps_the_widest_channels_and_the_same_width_changes_nothing():
+    _, _, E = checkpoint.build_models(checkpoint.load(MODEL))
+    x = torch.randn(3, 1, 64, 64)
+    with torch.no_grad():
+        assert torch.equal(narrowed(E, E.cfg.nf)(x), E(x))
+        small = narrowed(E, 16)
+        assert small.cfg.encoder_nf == 16 and small(x).shape == E(x).shape
+        assert small.derender[0].weight.shape == (16, 1, 4, 4)
+        assert small.head[6].weight.shape == (80, 128, 4, 4)
+        # each kept channel is one of the source's, weights and all
+        rows = [int((E.derender[0].weight == w).all((1, 2, 3)).nonzero()) for w in small.derender[0].weight]
+        assert len(set(rows)) == 16

@@ -63,6 +63,10 @@ def test_discriminator_and_encoder_shapes():
     assert z.shape == (5, 3, 16) and h.shape == (5, 16, 16, 16)
     z.sum().backward()
     assert x.grad is not None
+    wider = Encoder(ModelConfig(**{**SMALL, "renderer": "spheres", "composite": "zbuffer",
+                                   "encoder_nf": 16}))
+    z, h = wider(x, return_features=True)  # an encoder of its own width: the same codes
+    assert z.shape == (5, 3, 16) and h.shape == (5, 32, 16, 16)
 
 
 def test_bad_model_configs():
@@ -70,6 +74,11 @@ def test_bad_model_configs():
         ModelConfig(composite="sum")
     with pytest.raises(ValueError, match="image_size must be 64"):
         ModelConfig(image_size=128)
+    with pytest.raises(ValueError, match="encoder_nf must be 0 .* got 12"):
+        ModelConfig(renderer="spheres", composite="zbuffer", encoder_nf=12)
+    with pytest.raises(ValueError, match="learned renderer's L_i compares .* got 16"):
+        ModelConfig(nf=32, encoder_nf=16)
+    assert ModelConfig(nf=32, encoder_nf=32).encoder_nf == 32
 
 
 # ------------------------------------------------------------------- alignment losses
