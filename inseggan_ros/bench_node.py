@@ -94,6 +94,8 @@ def main(argv=None) -> int:
     ap.add_argument("--keep", type=int, help="segmenter refine_keep")
     ap.add_argument("--smooth-iters", type=int, help="segmenter smooth_iters")
     ap.add_argument("--full-res-smooth-iters", type=int, help="segmenter smooth_full_res_iters")
+    ap.add_argument("--precision", choices=("float32", "bfloat16", "auto"),
+                    help="segmenter encoder_precision")
     ap.add_argument("--default-transport", action="store_true",
                     help="Fast DDS's built-in transports instead of the shipped large-frames "
                          "profile (config/fastdds_large_frames.xml)")
@@ -205,7 +207,7 @@ def main(argv=None) -> int:
           f"Fast DDS: {profile})")
     print(f"  settings: {cfg.refine_steps} refinement iterations, {cfg.hypotheses} starting "
           f"points ({cfg.keep or 'all'} refined), smoothing {cfg.smooth.iters} + "
-          f"{cfg.smooth.full_res_active} at full resolution"
+          f"{cfg.smooth.full_res_active} at full resolution, encoder in {cfg.precision}"
           + (f" (params file {args.params_file})" if args.params_file else ""))
     print(f"  frames: sent {len(sent)}, answered {len(got)} ({100 * len(got) / max(len(sent), 1):.1f} %),"
           f" dropped {len(sent) - len(got)} (node received about {received}; skipped "

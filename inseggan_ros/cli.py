@@ -316,6 +316,9 @@ def _add_settings_args(p: argparse.ArgumentParser, default: str) -> None:
     p.add_argument("--smooth-iters", type=int, help="label-smoothing iterations at 64 x 64")
     p.add_argument("--full-res-smooth-iters", type=int,
                    help="label-smoothing iterations at the input's resolution")
+    p.add_argument("--precision", choices=("float32", "bfloat16", "auto"),
+                   help="the encoder's arithmetic (auto: bfloat16 where the CPU/GPU computes it "
+                        "natively)")
 
 
 def build_parser() -> argparse.ArgumentParser:

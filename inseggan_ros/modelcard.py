@@ -187,7 +187,8 @@ def full_resolution_scores(seg, bag_path) -> dict:
 def _settings_text(d: dict) -> str:
     from .segment import InferenceConfig
 
-    smooth = InferenceConfig.from_dict(d).smooth
+    cfg = InferenceConfig.from_dict(d)
+    smooth = cfg.smooth
     if d["refine_steps"] == 0:
         start = (f"no refinement, the best-fitting of {d['hypotheses']} starting points"
                  if d["hypotheses"] > 1 else "no refinement")
@@ -195,8 +196,9 @@ def _settings_text(d: dict) -> str:
         keep = f", the best-fitting {d['keep']} refined" if d.get("keep") else ""
         start = (f"{d['refine_steps']} refinement iterations from {d['hypotheses']} starting "
                  f"point(s){keep}")
+    precision = "" if cfg.precision == "float32" else f", encoder in {cfg.precision}"
     return (f"{start}, {smooth.iters} smoothing iterations + {smooth.full_res_active} at full "
-            "resolution")
+            f"resolution{precision}")
 
 
 def _distill_line(card: dict) -> list[str]:

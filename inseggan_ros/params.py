@@ -14,10 +14,11 @@ from pathlib import Path
 # node parameter -> InferenceConfig field (smoothing ones: SmoothConfig fields)
 SETTINGS = {"refine_steps": "refine_steps", "refine_hypotheses": "hypotheses",
             "refine_keep": "keep", "smooth_iters": "iters",
-            "smooth_full_res_iters": "full_res_iters"}
+            "smooth_full_res_iters": "full_res_iters", "encoder_precision": "precision"}
 # node parameter -> the command-line flag's argparse name (`inseggan eval/export`, bench_node)
 FLAGS = {"refine_steps": "refine_steps", "refine_hypotheses": "hypotheses", "refine_keep": "keep",
-         "smooth_iters": "smooth_iters", "smooth_full_res_iters": "full_res_smooth_iters"}
+         "smooth_iters": "smooth_iters", "smooth_full_res_iters": "full_res_smooth_iters",
+         "encoder_precision": "precision"}
 
 
 def from_flags(args) -> dict:
@@ -52,7 +53,7 @@ def apply(cfg, params: dict):
     of `params` is ignored)."""
     from dataclasses import replace
 
-    top = {SETTINGS[k]: int(v) for k, v in params.items()
-           if k in SETTINGS and not k.startswith("smooth")}
+    top = {SETTINGS[k]: str(v) if k == "encoder_precision" else int(v)
+           for k, v in params.items() if k in SETTINGS and not k.startswith("smooth")}
     cfg = replace(cfg, **top)
     return cfg.with_smoothing(params.get("smooth_iters"), params.get("smooth_full_res_iters"))

@@ -332,6 +332,33 @@ def test_inference_config_validates_and_reads_old_checkpoints():
             InferenceConfig(**bad)
     with pytest.raises(ValueError, match="full_res_iters"):
         SmoothConfig(full_res_iters=-1)
+    with pytest.raises(ValueError, match="precision 'half' invalid; valid: float32, bfloat16, auto"):
+        InferenceConfig(precision="half")
+    assert old.precision == "float32"
+    fast = InferenceConfig(precision="auto")
+    assert InferenceConfig.from_dict(fast.to_dict()) == fast
+
+
+def test_a_bfloat16_encoder_gives_the_float32_labels():
+    """The shipped cylinder model on bins it draws itself: the encoder in bfloat16 (native or
+    not) segments as in float32, up to a few pixels."""
+    from pathlib import Path
+
+    from inseggan_ros import checkpoint
+    from inseggan_ros.segment import InferenceConfig, native_bfloat16
+
+    path = Path(__file__).resolve().parents[1] / "models" / "cylinder" / "model.pt"
+    seg = checkpoint.load_for_inference(path, device="cpu")
+    torch.manual_seed(0)
+    with torch.no_grad():
+        x = seg.G.zbuffer(seg.G.render_instances(torch.randn(6, 5, seg.model_cfg.latent_dim)))
+    cfg = InferenceConfig(0, 8, 1)
+    a = seg.segment_batch(x, settings=cfg)["labels"]
+    b = seg.segment_batch(x, settings=InferenceConfig(0, 8, 1, precision="bfloat16"))["labels"]
+    assert (a != b).float().mean() < 0.01
+    assert seg.resolve_precision("auto") == ("bfloat16" if native_bfloat16("cpu") else "float32")
+    assert seg.encoder("bfloat16") is seg.encoder("bfloat16")  # one copy of the weights
+    assert seg.encoder("float32") is seg.E
 
 
 def test_levenberg_marquardt_refinement_recovers_known_poses():

@@ -228,6 +228,9 @@ def test_parameter_changes_are_validated_at_run_time():
         assert set_("rim_band", "0.0") == "ok"
         assert set_("rim_band", "1.5").startswith("rejected")  # outside 0..1
         assert set_("rim_step", "0.0").startswith("rejected")  # outside 0.0001..0.1
+        assert set_("encoder_precision", "'bfloat16'") == "ok"
+        assert set_("encoder_precision", "'float16'") == (
+            "rejected: encoder_precision 'float16' invalid; valid: float32, bfloat16, auto")
     finally:
         assert stop(seg) == 0
 
