@@ -165,7 +165,7 @@ def cmd_distill(args) -> int:
     cfg = DistillConfig(frames=args.frames, refine_steps=args.refine_steps,
                         hypotheses=args.hypotheses, iterations=args.iterations,
                         eval_every=args.eval_every, lr=args.lr, seed=args.seed,
-                        encoder_nf=args.encoder_nf)
+                        encoder_nf=args.encoder_nf, lr_schedule=args.lr_schedule)
     train = data_mod.load_sim_split(args.data, "train", limit=cfg.frames, progress=not args.quiet)
     val = data_mod.load_sim_split(args.data, "val", limit=cfg.eval_frames)
     t0 = time.perf_counter()
@@ -437,6 +437,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--eval-every", type=int, default=500)
     p.add_argument("--lr", type=float, default=3e-4)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--lr-schedule", choices=("constant", "cosine"), default="constant",
+                   help="constant (default) or cosine: down to 0 at the last iteration")
     p.add_argument("--encoder-nf", type=int, default=0,
                    help="0: fine-tune the checkpoint's encoder (default); N: train a new encoder "
                         "of width N (a multiple of 8; narrower is faster) from scratch")

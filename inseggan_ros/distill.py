@@ -45,6 +45,7 @@ class DistillConfig:
     iterations: int = 6000
     batch_size: int = 32
     lr: float = 3e-4
+    lr_schedule: str = "constant"  # or "cosine": from lr down to 0 at the last iteration
     lambda_real: float = 1.0  # weight of the real-frame reconstruction loss
     recon_levels: int = 4
     eval_every: int = 500
@@ -60,6 +61,8 @@ class DistillConfig:
         if not self.lr > 0 or not self.lambda_real >= 0:
             raise ValueError(f"lr {self.lr!r} must be > 0 and lambda_real {self.lambda_real!r} "
                              ">= 0")
+        if self.lr_schedule not in ("constant", "cosine"):
+            raise ValueError(f"lr_schedule {self.lr_schedule!r} invalid; valid: constant, cosine")
         if self.encoder_nf != 0 and (self.encoder_nf < 8 or self.encoder_nf % 8):
             raise ValueError(f"encoder_nf {self.encoder_nf!r} invalid; valid: 0 (fine-tune the "
                              "source's encoder) or a multiple of 8, >= 8")
@@ -250,6 +253,9 @@ def distill(source, train_x: np.ndarray, val: dict | None, out, cfg: DistillConf
         l_real = losses.pyramid_l1(G.zbuffer(G.render_poses(pose)), xb, cfg.recon_levels)
         opt.zero_grad(set_to_none=True)
         (l_pose + cfg.lambda_real * l_real).backward()
+        if cfg.lr_schedule == "cosine":  # a function of the iteration: a resumed run follows it
+            for group in opt.param_groups:
+                group["lr"] = cfg.lr * 0.5 * (1 + math.cos(math.pi * it / cfg.iterations))
         opt.step()
         it += 1
         stats = {"l_pose": round(l_pose.item(), 5), "l_real": round(l_real.item(), 5)}

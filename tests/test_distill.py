@@ -111,3 +111,13 @@ def test_narrowing_keeps_the_widest_channels_and_the_same_width_changes_nothing(
         # each kept channel is one of the source's, weights and all
         rows = [int((E.derender[0].weight == w).all((1, 2, 3)).nonzero()) for w in small.derender[0].weight]
         assert len(set(rows)) == 16
+
+
+def test_distill_config_is_validated():
+    from inseggan_ros.distill import DistillConfig
+
+    for bad, match in (({"lr_schedule": "linear"}, "lr_schedule 'linear' invalid; valid: constant, cosine"),
+                       ({"encoder_nf": 20}, "encoder_nf 20 invalid"),
+                       ({"iterations": 0}, "iterations 0 invalid")):
+        with pytest.raises(ValueError, match=match):
+            DistillConfig(**bad)
