@@ -58,7 +58,8 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, inference=None,
 
     # 1. tau with the shipped inference settings (on the z-buffered labels, before smoothing)
     x = torch.from_numpy(val["x"])
-    renders = torch.cat([infer(seg.G, seg.E, x[i:i + 50], refine_steps=inference.refine_steps,
+    renders = torch.cat([infer(seg.G, seg.encoder(inference.precision), x[i:i + 50],
+                               refine_steps=inference.refine_steps,
                                hypotheses=inference.hypotheses,
                                keep=inference.keep)["renders"]
                          for i in range(0, len(x), 50)])
@@ -77,6 +78,7 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, inference=None,
         E16 = {k: v.half().float() if v.is_floating_point() else v for k, v in keep["encoder"].items()}
         seg.G.load_state_dict(G16)
         seg.E.load_state_dict(E16)
+        seg.encoder_changed()
         val_half = _val_miou(seg, val)
         if abs(val_half - val_full) < HALF_TOLERANCE:
             precision = "float16"
@@ -85,6 +87,7 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, inference=None,
         else:
             seg.G.load_state_dict({k: v.float() for k, v in state["generator"].items()})
             seg.E.load_state_dict({k: v.float() for k, v in state["encoder"].items()})
+            seg.encoder_changed()
     keep["precision"] = precision
 
     # 3. the quality table on the test split (and, for reference, InSeGAN with more test-time

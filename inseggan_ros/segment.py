@@ -689,6 +689,10 @@ class Segmenter:
         self.inference = inference
         self._encoders = {}  # precision -> the encoder that computes in it
 
+    def encoder_changed(self) -> None:
+        """Call after changing E's weights: its copies in other precisions are made anew."""
+        self._encoders.clear()
+
     def resolve_precision(self, precision: str) -> str:
         """`PRECISIONS` -> what the encoder computes in: auto is bfloat16 where native."""
         if precision == "auto":
