@@ -207,7 +207,8 @@ def main(argv=None) -> int:
           f"Fast DDS: {profile})")
     print(f"  settings: {cfg.refine_steps} refinement iterations, {cfg.hypotheses} starting "
           f"points ({cfg.keep or 'all'} refined), smoothing {cfg.smooth.iters} + "
-          f"{cfg.smooth.full_res_active} at full resolution, encoder in {cfg.precision}"
+          f"{cfg.smooth.full_res_active} at full resolution, encoder in "
+          f"{last.get('encoder_precision', cfg.precision)}"
           + (f" (params file {args.params_file})" if args.params_file else ""))
     print(f"  frames: sent {len(sent)}, answered {len(got)} ({100 * len(got) / max(len(sent), 1):.1f} %),"
           f" dropped {len(sent) - len(got)} (node received about {received}; skipped "

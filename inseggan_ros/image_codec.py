@@ -61,6 +61,12 @@ def decode(height: int, width: int, encoding: str, is_bigendian: int, step: int,
 
 def encode(array: np.ndarray, encoding: str) -> tuple[int, bytes]:
     """(H, W[, C]) array -> (step, little-endian bytes) for the given encoding."""
+    step, a = encode_array(array, encoding)
+    return step, a.tobytes()
+
+
+def encode_array(array: np.ndarray, encoding: str) -> tuple[int, np.ndarray]:
+    """`encode` without the copy into bytes: (step, C-contiguous little-endian array)."""
     dtype, channels = _dtype_channels(encoding)
     a = np.asarray(array)
     shape_ok = a.ndim == 2 and channels == 1 or a.ndim == 3 and a.shape[2] == channels
@@ -70,7 +76,7 @@ def encode(array: np.ndarray, encoding: str) -> tuple[int, bytes]:
     if a.dtype != dtype:
         raise ImageFormatError(f"array dtype {a.dtype} does not fit encoding {encoding!r} ({dtype})")
     a = np.ascontiguousarray(a, dtype.newbyteorder("<"))
-    return a.shape[1] * channels * dtype.itemsize, a.tobytes()
+    return a.shape[1] * channels * dtype.itemsize, a
 
 
 def depth_to_metres(raw: np.ndarray, encoding: str) -> np.ndarray:

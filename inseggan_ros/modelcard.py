@@ -117,6 +117,7 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, inference=None,
         "tau": tau, "refine_steps": inference.refine_steps, "hypotheses": inference.hypotheses,
         "smooth_iters": inference.smooth.iters, "keep": inference.keep,
         "full_res_smooth_iters": inference.smooth.full_res_active,
+        "inference": inference.to_dict(),
         "also": {k: v.to_dict() for k, v in (also or {}).items()},
         "distillation": _distill_record(state),
         "precision": precision,
@@ -210,11 +211,14 @@ def _distill_line(card: dict) -> list[str]:
         return []
     c, v = d["config"], d["val_miou_no_refinement"]
     before = f"{v['before']:.3f} -> " if v["before"] is not None else ""
-    return [f"* **Encoder distilled** (`inseggan distill`) on its own refined poses of "
+    narrow = (f" into a {c['encoder_nf']}-wide encoder pruned from the source's "
+              f"(`--encoder-nf {c['encoder_nf']}`)" if c.get("encoder_nf") else "")
+    schedule = ", learning rate cosine to 0" if c.get("lr_schedule") == "cosine" else ""
+    return [f"* **Encoder distilled** (`inseggan distill`){narrow} on its refined poses of "
             f"{c['frames']} training frames ({c['refine_steps']} iterations x {c['hypotheses']} "
             f"starts), then fine-tuned, best of {c['iterations']} iterations at {d['iterations']} "
-            f"({d['wall_minutes']} min of fine-tuning); validation mIoU without refinement "
-            f"{before}{v['best']:.3f}"]
+            f"({d['wall_minutes']} min of fine-tuning{schedule}); validation mIoU without "
+            f"refinement {before}{v['best']:.3f}"]
 
 
 def _bag_line(card: dict) -> list[str]:
@@ -254,17 +258,19 @@ def card_markdown(card: dict) -> str:
         f"* **Camera:** {cam['width']}x{cam['height']}, fx {cam['fx']}, mounted "
         f"{cam['mount_height']} m above the bin floor; noise: {noise}",
         f"* **Data:** simulated, seed {card['data']['seed']}, scenes {card['data']['counts']}",
-        f"* **Model:** renderer {m['renderer']}, composite {m['composite']}, nf {m['nf']}, "
+        f"* **Model:** renderer {m['renderer']}, composite {m['composite']}, nf {m['nf']}"
+        + (f" (encoder {m['encoder_nf']})" if m.get("encoder_nf") else "") + ", "
         f"latent {m['latent_dim']}, coord_conv {m.get('coord_conv', False)}",
         f"* **Training:** {card['iterations']} iterations, {card['wall_minutes']} min wall time, "
         f"{card['hardware']}, batch {card['train_config']['batch_size']}",
         *_distill_line(card),
         f"* **Inference:** tau {card['tau']:.3f} (calibrated on the 200 validation scenes), "
-        f"{card['refine_steps']} test-time refinement steps from {card.get('hypotheses', 1)} "
-        f"starting point(s)"
-        + (f" (the best-fitting {card['keep']} refined)" if card.get("keep") else "")
-        + f", {card.get('smooth_iters', 0)} label-smoothing iterations, "
-        f"weights in {card['precision']} "
+        + (_settings_text(card["inference"]) if "inference" in card else
+           f"{card['refine_steps']} test-time refinement steps from {card.get('hypotheses', 1)} "
+           f"starting point(s)"
+           + (f" (the best-fitting {card['keep']} refined)" if card.get("keep") else "")
+           + f", {card.get('smooth_iters', 0)} label-smoothing iterations")
+        + f", weights stored in {card['precision']} "
         f"(validation mIoU float32 {card['val_miou']['float32']:.4f}"
         + (f", float16 {card['val_miou']['float16']:.4f}" if card['val_miou']['float16'] is not None else "")
         + ")", "",

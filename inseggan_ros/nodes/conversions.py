@@ -24,7 +24,7 @@ def depth_to_metres(msg: Image) -> np.ndarray:
 
 
 def numpy_to_image(arr: np.ndarray, encoding: str, header: Header | None = None) -> Image:
-    step, data = image_codec.encode(arr, encoding)
+    step, data = image_codec.encode_array(arr, encoding)  # copied once, into the message
     msg = Image()
     if header is not None:
         msg.header = header
