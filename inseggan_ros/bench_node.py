@@ -147,9 +147,11 @@ def main(argv=None) -> int:
         Image, "segmenter/labels",
         lambda m: answered.__setitem__(conversions.stamp_to_ns(m.header.stamp), time.time_ns()), 10)
     node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
-    model = ["-p", f"model_path:={args.model}"] if args.model else []
-    if args.params_file:
-        model += ["--params-file", str(args.params_file)]
+    # the parameters file first: rcl gathers every -p into one set at the first -p's place, so
+    # a file after any -p would override even the -p flags that follow it
+    model = ["--params-file", str(args.params_file)] if args.params_file else []
+    if args.model:
+        model += ["-p", f"model_path:={args.model}"]
     for name, value in flags.items():
         model += ["-p", f"{name}:={value}"]
     seg = subprocess.Popen([_executable("segmenter"), "--ros-args", *model,

@@ -118,6 +118,8 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, inference=None,
         "smooth_iters": inference.smooth.iters, "keep": inference.keep,
         "full_res_smooth_iters": inference.smooth.full_res_active,
         "inference": inference.to_dict(),
+        # what "auto" meant here: the model tests measure in it, whatever their CPU computes natively
+        "encoder_precision": seg.resolve_precision(inference.precision),
         "also": {k: v.to_dict() for k, v in (also or {}).items()},
         "distillation": _distill_record(state),
         "precision": precision,

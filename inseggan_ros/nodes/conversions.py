@@ -31,7 +31,7 @@ def numpy_to_image(arr: np.ndarray, encoding: str, header: Header | None = None)
     msg.height, msg.width = int(arr.shape[0]), int(arr.shape[1])
     msg.encoding, msg.is_bigendian, msg.step = encoding, 0, step
     buf = array.array("B")
-    buf.frombytes(data)  # array.array is rclpy's fast path (no per-element checks)
+    buf.frombytes(data.reshape(-1).view(np.uint8))  # array.array: rclpy's fast path
     msg.data = buf
     return msg
 
