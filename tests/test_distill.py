@@ -54,7 +54,8 @@ def test_distillation_brings_the_encoder_towards_its_refined_poses(tmp, cyl_data
     x = torch.from_numpy(load_sim_split(cyl_data, "train", limit=48)["x"])
     before = _pose_loss(MODEL, x, pseudo["poses"])
     after = _pose_loss(out / "last.pt", x, pseudo["poses"])
-    # measured here: 0.095 -> 0.060 (a loss that the flat, untrained result would not lower)
+    # measured here: 0.045 -> 0.029 with the shipped 16-wide encoder (0.095 -> 0.060 with
+    # session 7's 32-wide one); a loss that the flat, untrained result would not lower
     assert after < 0.85 * before, f"pose error to the refined poses: {before:.4f} -> {after:.4f}"
     # the result is a complete checkpoint: the segmenter loads it, with the source's settings
     seg = checkpoint.load_for_inference(out / "last.pt", device="cpu")
@@ -80,20 +81,20 @@ def test_a_narrower_encoder_pruned_from_the_source_learns_the_refined_poses(tmp,
     out = tmp / "s"
     run_cli("distill", "--checkpoint", MODEL, "--data", cyl_data, "--out", out, "--frames", "32",
             "--refine-steps", "4", "--hypotheses", "2", "--iterations", "150", "--eval-every",
-            "150", "--encoder-nf", "16", "--quiet", check=True, timeout=600)
+            "150", "--encoder-nf", "8", "--quiet", check=True, timeout=600)
     state = checkpoint.load(out / "last.pt")
-    assert state["model_config"]["encoder_nf"] == 16
-    assert state["encoder"]["derender.0.weight"].shape[0] == 16
+    assert state["model_config"]["encoder_nf"] == 8
+    assert state["encoder"]["derender.0.weight"].shape[0] == 8
     pseudo = torch.load(out / "pseudo.pt", weights_only=False)["poses"]
     x = torch.from_numpy(load_sim_split(cyl_data, "train", limit=32)["x"])
     pruned = tmp / "pruned.pt"  # the starting point: pruned, not yet trained
     _, _, E = checkpoint.build_models(checkpoint.load(MODEL))
-    checkpoint.save(pruned, {**state, "encoder": narrowed(E, 16).state_dict()})
+    checkpoint.save(pruned, {**state, "encoder": narrowed(E, 8).state_dict()})
     before, after = _pose_loss(pruned, x, pseudo), _pose_loss(out / "last.pt", x, pseudo)
-    # measured here: 0.107 -> 0.033
-    assert after < 0.6 * before, f"pose error to the refined poses: {before:.4f} -> {after:.4f}"
+    # measured here: 0.122 -> 0.062 (8 wide, from the shipped 16-wide encoder)
+    assert after < 0.7 * before, f"pose error to the refined poses: {before:.4f} -> {after:.4f}"
     seg = checkpoint.load_for_inference(out / "last.pt", device="cpu")
-    assert seg.E.cfg.encoder_nf == 16 and seg.segment_batch(x[:2])["labels"].shape == (2, 64, 64)
+    assert seg.E.cfg.encoder_nf == 8 and seg.segment_batch(x[:2])["labels"].shape == (2, 64, 64)
     p = run_cli("distill", "--checkpoint", MODEL, "--data", cyl_data, "--out", tmp / "bad",
                 "--frames", "8", "--encoder-nf", "12", "--quiet")
     assert p.returncode == 2 and "encoder_nf 12 invalid" in p.stderr
@@ -101,16 +102,17 @@ def test_a_narrower_encoder_pruned_from_the_source_learns_the_refined_poses(tmp,
 
 def test_narrowing_keeps_the_widest_channels_and_the_same_width_changes_nothing():
     _, _, E = checkpoint.build_models(checkpoint.load(MODEL))
+    width = E.cfg.encoder_nf or E.cfg.nf
     x = torch.randn(3, 1, 64, 64)
     with torch.no_grad():
-        assert torch.equal(narrowed(E, E.cfg.nf)(x), E(x))
-        small = narrowed(E, 16)
-        assert small.cfg.encoder_nf == 16 and small(x).shape == E(x).shape
-        assert small.derender[0].weight.shape == (16, 1, 4, 4)
-        assert small.head[6].weight.shape == (80, 128, 4, 4)
+        assert torch.equal(narrowed(E, width)(x), E(x))
+        small = narrowed(E, width // 2)
+        assert small.cfg.encoder_nf == width // 2 and small(x).shape == E(x).shape
+        assert small.derender[0].weight.shape == (width // 2, 1, 4, 4)
+        assert small.head[6].weight.shape == (80, 4 * width, 4, 4)
         # each kept channel is one of the source's, weights and all
         rows = [int((E.derender[0].weight == w).all((1, 2, 3)).nonzero()) for w in small.derender[0].weight]
-        assert len(set(rows)) == 16
+        assert len(set(rows)) == width // 2
 
 
 def test_distill_config_is_validated():
