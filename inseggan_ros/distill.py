@@ -14,6 +14,10 @@ gains most of that:
     inseggan distill --checkpoint runs/cylinder_s1/best.pt --data data/cylinder \
         --out runs/cylinder_distill
 
+With `--encoder-nf N` step 2 trains an encoder of width N instead (faster at test time),
+started from the source's by channel pruning (`narrowed`); `--lr-schedule cosine` lowers the
+learning rate to 0 at the last iteration.
+
 Writes last.pt (every `eval_every` iterations; `--resume` continues from it) and best.pt (best
 validation score, as `inseggan train`: mIoU of the encoder's own poses where the validation
 frames have labels): training checkpoints with the new encoder, which `inseggan export` ships.
@@ -51,7 +55,7 @@ class DistillConfig:
     eval_every: int = 500
     eval_frames: int = 100
     seed: int = 0
-    encoder_nf: int = 0  # 0: fine-tune the source's encoder; else a new one this wide, from scratch
+    encoder_nf: int = 0  # 0: fine-tune the source's encoder; else one this wide, pruned from it
 
     def __post_init__(self):
         for name in ("frames", "refine_steps", "hypotheses", "chunk", "iterations", "batch_size",
