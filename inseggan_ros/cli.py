@@ -440,8 +440,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lr-schedule", choices=("constant", "cosine"), default="constant",
                    help="constant (default) or cosine: down to 0 at the last iteration")
     p.add_argument("--encoder-nf", type=int, default=0,
-                   help="0: fine-tune the checkpoint's encoder (default); N: train a new encoder "
-                        "of width N (a multiple of 8; narrower is faster) from scratch")
+                   help="0: fine-tune the checkpoint's encoder (default); N: an encoder of width "
+                        "N (a multiple of 8; narrower is faster), pruned from the checkpoint's")
     p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_distill)

@@ -195,12 +195,12 @@ def _settings_text(d: dict) -> str:
 
     cfg = InferenceConfig.from_dict(d)
     smooth = cfg.smooth
-    if d["refine_steps"] == 0:
-        start = (f"no refinement, the best-fitting of {d['hypotheses']} starting points"
-                 if d["hypotheses"] > 1 else "no refinement")
+    if cfg.refine_steps == 0:
+        start = (f"no refinement, the best-fitting of {cfg.hypotheses} starting points"
+                 if cfg.hypotheses > 1 else "no refinement")
     else:
-        keep = f", the best-fitting {d['keep']} refined" if d.get("keep") else ""
-        start = (f"{d['refine_steps']} refinement iterations from {d['hypotheses']} starting "
+        keep = f", the best-fitting {cfg.keep} refined" if cfg.keep else ""
+        start = (f"{cfg.refine_steps} refinement iterations from {cfg.hypotheses} starting "
                  f"point(s){keep}")
     precision = "" if cfg.precision == "float32" else f", encoder in {cfg.precision}"
     return (f"{start}, {smooth.iters} smoothing iterations + {smooth.full_res_active} at full "
@@ -267,12 +267,7 @@ def card_markdown(card: dict) -> str:
         f"{card['hardware']}, batch {card['train_config']['batch_size']}",
         *_distill_line(card),
         f"* **Inference:** tau {card['tau']:.3f} (calibrated on the 200 validation scenes), "
-        + (_settings_text(card["inference"]) if "inference" in card else
-           f"{card['refine_steps']} test-time refinement steps from {card.get('hypotheses', 1)} "
-           f"starting point(s)"
-           + (f" (the best-fitting {card['keep']} refined)" if card.get("keep") else "")
-           + f", {card.get('smooth_iters', 0)} label-smoothing iterations")
-        + f", weights stored in {card['precision']} "
+        + _settings_text(card["inference"]) + f", weights stored in {card['precision']} "
         f"(validation mIoU float32 {card['val_miou']['float32']:.4f}"
         + (f", float16 {card['val_miou']['float16']:.4f}" if card['val_miou']['float16'] is not None else "")
         + ")", "",
