@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from . import settings
+
 
 def _vm_hwm_mb(pid: int) -> float:
     with open(f"/proc/{pid}/status") as f:
@@ -54,13 +56,12 @@ def in_process_reference(frames, model_path: str, params: dict, repeats: int = 3
     from .image_codec import depth_to_metres
     from .nodes import conversions
     from .nodes.segmenter import resolve_model
-    from .params import apply
     from .preprocess import node_defaults
     from .segment import Segmenter
 
     torch.set_num_threads(1)
     seg = Segmenter.from_checkpoint(resolve_model(model_path), device="cpu")
-    settings = apply(seg.inference, params)
+    cfg = settings.apply(seg.inference, params)
     prep = node_defaults(seg.prep_cfg, depth_to_metres(frames[0], "16UC1"))
     infer_ms, conv_ms = [], []
     for _ in range(repeats):
@@ -69,14 +70,14 @@ def in_process_reference(frames, model_path: str, params: dict, repeats: int = 3
             t0 = time.perf_counter()
             depth = conversions.depth_to_metres(msg)
             t1 = time.perf_counter()
-            out = seg(depth, prep, reconstruction=False, settings=settings)
+            out = seg(depth, prep, reconstruction=False, settings=cfg)
             t2 = time.perf_counter()
             conversions.numpy_to_image(out.labels, "mono8", msg.header)
             t3 = time.perf_counter()
             infer_ms.append((t2 - t1) * 1e3)
             conv_ms.append((t1 - t0 + t3 - t2) * 1e3)
     return {"inference_ms": np.array(infer_ms), "conversion_ms": np.array(conv_ms),
-            "settings": settings}
+            "settings": cfg}
 
 
 def main(argv=None) -> int:
@@ -89,26 +90,22 @@ def main(argv=None) -> int:
     ap.add_argument("--distinct-frames", type=int, default=8)
     ap.add_argument("--params-file", type=Path,
                     help="ROS 2 parameters file for the segmenter (e.g. config/quality.yaml)")
-    ap.add_argument("--refine-steps", type=int, help="segmenter refine_steps")
-    ap.add_argument("--hypotheses", type=int, help="segmenter refine_hypotheses")
-    ap.add_argument("--keep", type=int, help="segmenter refine_keep")
-    ap.add_argument("--smooth-iters", type=int, help="segmenter smooth_iters")
-    ap.add_argument("--full-res-smooth-iters", type=int, help="segmenter smooth_full_res_iters")
-    ap.add_argument("--precision", choices=("float32", "bfloat16", "auto"),
-                    help="segmenter encoder_precision")
+    for s in settings.exposed():  # the segmenter's inference settings, one name each
+        ap.add_argument(s.flag, type=s.type, choices=s.choices, help=f"segmenter {s.name}")
     ap.add_argument("--default-transport", action="store_true",
                     help="Fast DDS's built-in transports instead of the shipped large-frames "
                          "profile (config/fastdds_large_frames.xml)")
+    ap.add_argument("--node-sets-profile", action="store_true",
+                    help="start the segmenter without the profile variable, as a plain "
+                         "`ros2 run` does, so that it must set the profile itself")
     args = ap.parse_args(argv)
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    from .params import from_flags, read_params_file
-
     try:
-        params = read_params_file(args.params_file) if args.params_file else {}
+        params = settings.read_params_file(args.params_file) if args.params_file else {}
     except ValueError as e:
         print(f"bench-node: error: {e}", file=sys.stderr)
         return 2
-    flags = from_flags(args)
+    flags = settings.from_flags(args)
     params.update(flags)
     from .dds import PROFILE_VARIABLES, use_large_frames_profile
 
@@ -154,10 +151,12 @@ def main(argv=None) -> int:
         model += ["-p", f"model_path:={args.model}"]
     for name, value in flags.items():
         model += ["-p", f"{name}:={value}"]
+    env = None
+    if args.node_sets_profile:
+        env = {k: v for k, v in os.environ.items() if k not in PROFILE_VARIABLES}
     seg = subprocess.Popen([_executable("segmenter"), "--ros-args", *model,
-                            "-p", "latency_window:=100000",
-                            "-r", "depth:=camera/depth/image_rect_raw"],
-                           stderr=subprocess.PIPE, text=True)
+                            "-p", "latency_window:=100000"],
+                           stderr=subprocess.PIPE, text=True, env=env)
     msgs = [conversions.numpy_to_image(f, "16UC1") for f in frames]
     sent: list[int] = []
     try:
@@ -207,10 +206,10 @@ def main(argv=None) -> int:
     print(f"\nsegmenter node, {args.width}x{args.height} 16UC1 at {args.rate:.0f} Hz for "
           f"{args.seconds:.0f} s (model {last.get('model', '?')}, {last.get('device', '?')}, "
           f"Fast DDS: {profile})")
-    print(f"  settings: {cfg.refine_steps} refinement iterations, {cfg.hypotheses} starting "
-          f"points ({cfg.keep or 'all'} refined), smoothing {cfg.smooth.iters} + "
+    print(f"  settings: {cfg.refine_steps} refinement iterations, {cfg.refine_hypotheses} "
+          f"starting points ({cfg.refine_keep or 'all'} refined), smoothing {cfg.smooth.iters} + "
           f"{cfg.smooth.full_res_active} at full resolution, encoder in "
-          f"{last.get('encoder_precision', cfg.precision)}"
+          f"{last.get('encoder_precision', cfg.encoder_precision)}"
           + (f" (params file {args.params_file})" if args.params_file else ""))
     print(f"  frames: sent {len(sent)}, answered {len(got)} ({100 * len(got) / max(len(sent), 1):.1f} %),"
           f" dropped {len(sent) - len(got)} (node received about {received}; skipped "

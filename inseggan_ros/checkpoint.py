@@ -71,24 +71,6 @@ def pick_device(device: str = "auto") -> str:
     return device
 
 
-def load_for_inference(path, device: str = "auto", tau: float | None = None):
-    from .preprocess import PreprocessConfig
-    from .segment import InferenceConfig, Segmenter
-
-    state = load(path)
-    cfg, G, E = build_models(state, path)
-    try:
-        prep = PreprocessConfig.from_dict(state["preprocess_config"])
-    except (KeyError, TypeError, ValueError) as e:
-        raise CheckpointError(f"{path}: bad preprocessing config ({e})") from None
-    try:  # models exported before label smoothing or `keep` existed: off, all
-        inference = InferenceConfig.from_dict(state.get("inference", {}))
-    except (TypeError, ValueError) as e:
-        raise CheckpointError(f"{path}: bad inference settings ({e})") from None
-    return Segmenter(G, E, cfg, prep, float(state.get("tau", -0.5) if tau is None else tau),
-                     device=pick_device(device), inference=inference)
-
-
 def export_for_inference(src, dst, half: bool = False) -> Path:
     """Keep what inference needs: configs, tau, G and E weights (optionally float16)."""
     state = load(src)

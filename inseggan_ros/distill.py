@@ -37,7 +37,8 @@ from tqdm import tqdm
 
 from . import checkpoint, losses
 from .model import Encoder, ModelConfig, pose_features
-from .segment import SYMMETRIES, refine_poses, start_poses, transform_image, transform_poses
+from .refine import refine_poses, start_poses
+from .symmetry import SYMMETRIES, transform_image, transform_poses
 
 
 @dataclass(frozen=True)
@@ -98,7 +99,7 @@ def pseudo_labels(G, E, x: np.ndarray, cfg: DistillConfig, path: Path,
 
 def _symmetry_batch(x: torch.Tensor, pose: torch.Tensor, gen: torch.Generator):
     """Each frame under a random one of the 8 symmetries of the square (mirrored and/or
-    transposed: `segment.SYMMETRIES`), its poses with it."""
+    transposed: `symmetry.SYMMETRIES`), its poses with it."""
     pick = torch.randint(0, len(SYMMETRIES), (len(x),), generator=gen)
     x, pose = x.clone(), pose.clone()
     for k, sym in enumerate(SYMMETRIES[1:], 1):

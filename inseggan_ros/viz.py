@@ -100,7 +100,8 @@ def plot_history(history: list, path, panels) -> None:
                                        else {"label": key}))
         ax.set_title(title)
         ax.set_xlabel("iteration")
-        ax.legend(fontsize=8)
+        if ax.get_legend_handles_labels()[0]:  # a panel with no records yet has no legend
+            ax.legend(fontsize=8)
     fig.tight_layout()
     tmp = path.with_name(path.name + ".tmp.png")
     fig.savefig(tmp, dpi=70)

@@ -47,4 +47,9 @@ if ! colcon build --base-paths . > log/setup_build.txt 2>&1; then
   echo "setup: error: colcon build failed (full log: log/setup_build.txt)" >&2
   exit 1
 fi
+# `inseggan` on the PATH once the environment is activated: the command colcon installed
+# (ROS keeps a package's executables in lib/<package>, off the PATH, for `ros2 run`)
+printf '#!/usr/bin/env bash\n# written by scripts/setup.sh: the inseggan command of this checkout\nexec "%s/install/inseggan_ros/lib/inseggan_ros/inseggan" "$@"\n' \
+  "$PWD" > "$VENV/bin/inseggan"
+chmod +x "$VENV/bin/inseggan"
 echo "setup: done. Use:  source $VENV/bin/activate && source install/setup.bash"

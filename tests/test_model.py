@@ -267,7 +267,7 @@ def test_multi_start_refinement_never_fits_worse_than_one_start():
     """Hypothesis 0 follows exactly the single-start trajectory (every scene is fitted on its
     own), so the best of several fits each frame at least as well; it is deterministic."""
     from inseggan_ros.model import make_generator
-    from inseggan_ros.segment import refine_poses, start_poses
+    from inseggan_ros.refine import refine_poses, start_poses
 
     torch.manual_seed(0)
     cfg = ModelConfig(renderer="spheres", composite="zbuffer", spheres=4, **SMALL)
@@ -299,7 +299,7 @@ def test_refining_only_the_best_fitting_start():
     """keep=1 chooses the start that fits best before refining it, and then refines exactly that
     one (the same poses as refining it alone); with 0 steps it is the choice alone."""
     from inseggan_ros.model import make_generator
-    from inseggan_ros.segment import _fit_loss, refine_poses, start_poses
+    from inseggan_ros.refine import _fit_loss, refine_poses, start_poses
 
     torch.manual_seed(0)
     cfg = ModelConfig(renderer="spheres", composite="zbuffer", spheres=4, **SMALL)
@@ -323,25 +323,50 @@ def test_refining_only_the_best_fitting_start():
 
 
 def test_inference_config_validates_and_reads_old_checkpoints():
-    from inseggan_ros.segment import InferenceConfig, SmoothConfig
+    from inseggan_ros.settings import InferenceConfig, SmoothConfig
 
-    old = InferenceConfig.from_dict({"refine_steps": 30, "hypotheses": 4})  # session 3 models
+    old = InferenceConfig.from_dict({"refine_steps": 30, "hypotheses": 4})  # pre-smoothing models
     assert old == InferenceConfig(30, 4, 0, SmoothConfig(iters=0))
     cfg = InferenceConfig(48, 8, 2, SmoothConfig(iters=20, full_res_iters=0))
     assert InferenceConfig.from_dict(cfg.to_dict()) == cfg
     assert cfg.with_smoothing(5).smooth == SmoothConfig(iters=5, full_res_iters=0)
     for bad, match in (({"refine_steps": -1}, "refine_steps -1 invalid"),
-                       ({"hypotheses": 0}, "hypotheses 0 invalid; valid: >= 1"),
-                       ({"keep": -2}, "keep -2 invalid")):
+                       ({"refine_hypotheses": 0}, "refine_hypotheses 0 invalid; valid: >= 1"),
+                       ({"refine_keep": -2}, "refine_keep -2 invalid")):
         with pytest.raises(ValueError, match=match):
             InferenceConfig(**bad)
-    with pytest.raises(ValueError, match="full_res_iters"):
+    with pytest.raises(ValueError, match="smooth_full_res_iters"):
         SmoothConfig(full_res_iters=-1)
-    with pytest.raises(ValueError, match="precision 'half' invalid; valid: float32, bfloat16, auto"):
-        InferenceConfig(precision="half")
-    assert old.precision == "float32"
-    fast = InferenceConfig(precision="auto")
+    with pytest.raises(ValueError, match="encoder_precision 'half' invalid; valid: float32, "
+                                         "bfloat16, auto"):
+        InferenceConfig(encoder_precision="half")
+    assert old.encoder_precision == "float32"
+    fast = InferenceConfig(encoder_precision="auto")
     assert InferenceConfig.from_dict(fast.to_dict()) == fast
+    with pytest.raises(ValueError, match="unknown inference settings"):
+        InferenceConfig.from_dict({"refine_stpes": 3})
+
+
+def test_settings_have_one_name_as_field_parameter_and_flag():
+    """Every exposed setting is a field (smooth_<field> inside smooth), a node parameter and a
+    flag of the same name; a parameters file and flags apply through that one table."""
+    import argparse
+
+    from inseggan_ros import settings
+
+    names = [s.name for s in settings.exposed()]
+    assert names == ["refine_steps", "refine_hypotheses", "refine_keep", "smooth_iters",
+                     "smooth_full_res_iters", "encoder_precision"]
+    parser = argparse.ArgumentParser()
+    settings.add_flags(parser, "(default: the model's)")
+    args = parser.parse_args(["--refine-hypotheses", "8", "--smooth-full-res-iters", "0",
+                              "--encoder-precision", "auto"])
+    cfg = settings.apply(settings.InferenceConfig(), settings.from_flags(args))
+    assert (cfg.refine_hypotheses, cfg.smooth.full_res_iters, cfg.encoder_precision) == (8, 0, "auto")
+    assert settings.values(cfg)["refine_hypotheses"] == 8
+    assert settings.apply(cfg, {"roi": [1, 2, 3, 4], "smooth_iters": 3}).smooth.iters == 3
+    with pytest.raises(ValueError, match="refine_keep -1 invalid"):
+        settings.apply(cfg, {"refine_keep": -1})
 
 
 def test_a_bfloat16_encoder_gives_the_float32_labels():
@@ -349,17 +374,17 @@ def test_a_bfloat16_encoder_gives_the_float32_labels():
     not) segments as in float32, up to a few pixels."""
     from pathlib import Path
 
-    from inseggan_ros import checkpoint
-    from inseggan_ros.segment import InferenceConfig, native_bfloat16
+    from inseggan_ros.precision import native_bfloat16
+    from inseggan_ros.segment import InferenceConfig, Segmenter
 
     path = Path(__file__).resolve().parents[1] / "models" / "cylinder" / "model.pt"
-    seg = checkpoint.load_for_inference(path, device="cpu")
+    seg = Segmenter.from_checkpoint(path, device="cpu")
     torch.manual_seed(0)
     with torch.no_grad():
         x = seg.G.zbuffer(seg.G.render_instances(torch.randn(6, 5, seg.model_cfg.latent_dim)))
     cfg = InferenceConfig(0, 8, 1)
     a = seg.segment_batch(x, settings=cfg)["labels"]
-    b = seg.segment_batch(x, settings=InferenceConfig(0, 8, 1, precision="bfloat16"))["labels"]
+    b = seg.segment_batch(x, settings=InferenceConfig(0, 8, 1, encoder_precision="bfloat16"))["labels"]
     assert (a != b).float().mean() < 0.01
     assert seg.resolve_precision("auto") == ("bfloat16" if native_bfloat16("cpu") else "float32")
     assert seg.encoder("bfloat16") is seg.encoder("bfloat16")  # one copy of the weights
@@ -371,7 +396,7 @@ def test_levenberg_marquardt_refinement_recovers_known_poses():
     from one iteration to the next, and the fit ends far closer to the frames than it began
     (the scene's renders match; poses themselves are ambiguous under the rod's symmetry)."""
     from inseggan_ros.model import make_generator
-    from inseggan_ros.segment import _lm_fit, _pyramid_features
+    from inseggan_ros.refine import _lm_fit, _pyramid_features
 
     torch.manual_seed(1)
     cfg = ModelConfig(renderer="spheres", composite="zbuffer", spheres=4, **SMALL)
@@ -401,7 +426,7 @@ def test_transformed_poses_render_the_transformed_image(profile):
     render the transformed image, and the inverse mapping brings them back: exact for any
     solid of revolution, a rod with a thicker head (monotone radii) too."""
     from inseggan_ros.model import make_generator
-    from inseggan_ros.segment import SYMMETRIES, transform_image, transform_poses
+    from inseggan_ros.symmetry import SYMMETRIES, transform_image, transform_poses
 
     cfg = ModelConfig(renderer="spheres", composite="zbuffer", spheres=4, radius_profile=profile,
                       **SMALL)
@@ -419,7 +444,7 @@ def test_transformed_poses_render_the_transformed_image(profile):
 
 
 def test_written_out_adam_matches_torch_adam():
-    from inseggan_ros.segment import _adam_fit
+    from inseggan_ros.refine import _adam_fit
 
     target = torch.linspace(-1, 1, 12).reshape(2, 6)
     start = torch.zeros(2, 6)

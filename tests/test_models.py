@@ -1,9 +1,10 @@
 """Every shipped model: its card agrees with its checkpoint, and it segments shipped sample frames.
 
 The quality check compares InSeGAN with K-Means on the frames of the model's sample bag. The card
-records both scores, measured at export; the test measures them again (they must agree), and
-where the card records InSeGAN below K-Means, the comparison is expected to fail (strict xfail:
-should a retrained model beat K-Means, the test fails until the card and README say so).
+records both scores, measured at export; the test measures them again (they must agree to within
+what another CPU's arithmetic changes, CPU_TOLERANCE), and where the card records InSeGAN clearly
+below K-Means, the comparison is expected to fail (strict xfail: should a retrained model beat
+K-Means, the test fails until the card and README say so).
 """
 import functools
 import json
@@ -16,6 +17,7 @@ from conftest import BAGS, REPO
 from inseggan_ros import checkpoint, data, evaluate
 from inseggan_ros.metrics import mean_miou
 from inseggan_ros.modelcard import full_resolution_scores
+from inseggan_ros.segment import Segmenter
 
 MODELS = sorted(p.parent for p in (REPO / "models").glob("*/card.json"))
 
@@ -65,11 +67,11 @@ def test_card_matches_checkpoint(folder):
     assert card["smooth_iters"] == state["inference"]["smooth"]["iters"]
     assert card["precision"] == state["precision"]
     assert card["iterations"] == state["iteration"]
-    seg = checkpoint.load_for_inference(path, device="cpu")
+    seg = Segmenter.from_checkpoint(path, device="cpu")
     cfg = seg.inference
     assert seg.tau == pytest.approx(card["tau"]) and cfg.refine_steps == card["refine_steps"]
-    assert cfg.hypotheses == card["hypotheses"] and cfg.smooth.iters == card["smooth_iters"]
-    assert cfg.keep == card.get("keep", 0)
+    assert cfg.refine_hypotheses == card["hypotheses"] and cfg.smooth.iters == card["smooth_iters"]
+    assert cfg.refine_keep == card.get("keep", 0)
     readme = (folder / "README.md").read_text()
     assert f"{card['tau']:.3f}" in readme and (folder / "qualitative.png").is_file()
 
@@ -78,9 +80,10 @@ def load_as_measured(folder: Path):
     """The shipped model with its card's encoder precision (what `auto` resolved to where the
     card was measured), so that a CPU without native bfloat16 measures the same arithmetic."""
     card = json.loads((folder / "card.json").read_text())
-    seg = checkpoint.load_for_inference(folder / "model.pt", device="cpu")
+    seg = Segmenter.from_checkpoint(folder / "model.pt", device="cpu")
     seg.inference = replace(seg.inference,
-                            precision=card.get("encoder_precision", seg.inference.precision))
+                            encoder_precision=card.get("encoder_precision",
+                                                      seg.inference.encoder_precision))
     return seg
 
 
@@ -98,24 +101,42 @@ def sample_bag_scores(folder: Path) -> tuple[float, float, int]:
     return ours, km, len(frames["x"])
 
 
+# How far a card's scores move with the CPU's arithmetic, measured: the cylinder bag at full
+# resolution scores 0.868 with a bfloat16 encoder on AVX512-BF16 (where the card was made) and
+# 0.850 in float32, in emulated bfloat16 on AVX2, and in bfloat16 on AMX: the pose picked among
+# the starting points can tip. The cards' figures hold to this; comparisons with K-Means are
+# made on the same frames in the same run.
+CPU_TOLERANCE = 0.03
+
+
 @pytest.mark.parametrize("folder", MODELS, ids=[p.name for p in MODELS])
 def test_segments_its_sample_bag_as_its_card_says(folder):
     card = json.loads((folder / "card.json").read_text())
     ours, km, count = sample_bag_scores(folder)
     recorded = card["sample_bag_scores"]
     assert count == recorded["frames"]
-    assert ours == pytest.approx(recorded["inseggan"], abs=0.01)
-    assert km == pytest.approx(recorded["kmeans"], abs=0.01)
+    assert ours == pytest.approx(recorded["inseggan"], abs=CPU_TOLERANCE)
+    assert km == pytest.approx(recorded["kmeans"], abs=CPU_TOLERANCE)
+    assert ours - km == pytest.approx(recorded["inseggan"] - recorded["kmeans"],
+                                      abs=CPU_TOLERANCE)
     assert ours > 0.3, "well above labelling everything as one object (about 0.2)"
     full = full_resolution_scores(load_as_measured(folder), BAGS / card["sample_bag"])
-    assert full == pytest.approx(recorded["full_resolution"], abs=0.01)
+    assert full == pytest.approx(recorded["full_resolution"], abs=CPU_TOLERANCE)
 
 
 @pytest.mark.parametrize("folder", MODELS, ids=[p.name for p in MODELS])
 def test_segments_its_sample_bag_better_than_kmeans(folder, request):
+    """Where the card records InSeGAN clearly above or below K-Means on its sample bag, the
+    same holds here (below: a strict expected failure, so that a retrained model that beats
+    K-Means fails the test until its card says so). A card margin within CPU_TOLERANCE is a tie
+    that another CPU's rounding may flip; the card test above covers it."""
     card = json.loads((folder / "card.json").read_text())
-    if below_kmeans(card):
-        b = card["sample_bag_scores"]
+    b = card["sample_bag_scores"]
+    margin = b["inseggan"] - b["kmeans"]
+    if abs(margin) <= CPU_TOLERANCE:
+        pytest.skip(f"{folder.name}: the card records a tie with K-Means on "
+                    f"{card['sample_bag']} ({b['inseggan']:.3f} vs {b['kmeans']:.3f})")
+    if margin < 0:
         request.applymarker(pytest.mark.xfail(strict=True, reason=(
             f"{folder.name}: its card records mIoU {b['inseggan']:.3f} vs K-Means "
             f"{b['kmeans']:.3f} on the sample bag {card['sample_bag']}")))

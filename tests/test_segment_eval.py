@@ -8,8 +8,9 @@ from conftest import BAGS, run_cli
 
 from inseggan_ros import bags, checkpoint
 from inseggan_ros.checkpoint import CheckpointError
-from inseggan_ros.segment import (SmoothConfig, calibrate_tau, instance_scores, labels_from_renders,
-                                  smooth_full, smooth_labels)
+from inseggan_ros.segment import (Segmenter, calibrate_tau, instance_scores,
+                                  labels_from_renders)
+from inseggan_ros.smoothing import SmoothConfig, smooth_full, smooth_labels
 
 
 def test_zbuffer_labels_and_scores_by_hand():
@@ -103,15 +104,15 @@ def test_full_resolution_smoothing_puts_blocky_boundaries_on_the_height_edge(sid
 
 
 def test_label_smoothing_settings_are_validated():
-    for kwargs, message in [({"iters": -1}, "iters -1 invalid; valid: >= 0"),
-                            ({"radius": 0}, "radius 0 invalid; valid: >= 1"),
-                            ({"sigma_height": 0.0}, "sigma_height 0.0 invalid; valid: > 0")]:
+    for kwargs, message in [({"iters": -1}, "smooth_iters -1 invalid; valid: >= 0"),
+                            ({"radius": 0}, "smooth_radius 0 invalid; valid: >= 1"),
+                            ({"sigma_height": 0.0}, "smooth_sigma_height 0.0 invalid; valid: > 0")]:
         with pytest.raises(ValueError, match=message):
             SmoothConfig(**kwargs)
 
 
 def test_segmenter_on_a_full_resolution_frame(tiny_model):
-    seg = checkpoint.load_for_inference(tiny_model / "run" / "best.pt", device="cpu")
+    seg = Segmenter.from_checkpoint(tiny_model / "run" / "best.pt", device="cpu")
     frame = bags.read_all(BAGS / "cylinder_sim", limit=1)[0]
     depth = frame.metres()
     out = seg(depth)
@@ -142,12 +143,12 @@ def test_eval_cli_writes_table_json_and_png(tiny_model, tmp):
     assert (tmp / "ev" / "qualitative.png").read_bytes()[:4] == b"\x89PNG"
     p = run_cli("eval", "--model", tiny_model / "run" / "best.pt", "--data",
                 tiny_model / "data", "--frames", "4", "--out", tmp / "ev2", "--quiet",
-                "--methods", "kmeans", "--refine-steps", "3", "--hypotheses", "2",
+                "--methods", "kmeans", "--refine-steps", "3", "--refine-hypotheses", "2",
                 check=True, timeout=600)
     r = json.loads((tmp / "ev2" / "results.json").read_text())
-    assert (r["refine_steps"], r["hypotheses"]) == (3, 2) and "3 refinement steps" in p.stdout
+    assert (r["refine_steps"], r["refine_hypotheses"]) == (3, 2) and "3 refinement steps" in p.stdout
     p = run_cli("eval", "--model", tiny_model / "run" / "best.pt", "--data",
-                tiny_model / "data", "--frames", "4", "--out", tmp / "ev3", "--hypotheses", "0")
+                tiny_model / "data", "--frames", "4", "--out", tmp / "ev3", "--refine-hypotheses", "0")
     assert p.returncode != 0 and "hypotheses 0 invalid; valid: >= 1" in p.stderr
     p = run_cli("eval", "--model", tiny_model / "run" / "best.pt", "--data",
                 tiny_model / "data", "--frames", "4", "--out", tmp / "ev4", "--quiet",
@@ -164,9 +165,27 @@ def test_bad_model_files_give_one_clear_error(tmp):
     for path, message in [(tmp / "none.pt", "no such model file"),
                           (tmp / "junk.pt", "not a readable checkpoint")]:
         with pytest.raises(CheckpointError, match=message):
-            checkpoint.load_for_inference(path)
+            Segmenter.from_checkpoint(path)
         p = run_cli("eval", "--model", path, "--data", tmp, "--out", tmp / "x")
         assert p.returncode == 2 and message in p.stderr and "Traceback" not in p.stderr
     torch.save({"format": "something-else"}, tmp / "other.pt")
     with pytest.raises(CheckpointError, match="not an inseggan checkpoint"):
-        checkpoint.load_for_inference(tmp / "other.pt")
+        Segmenter.from_checkpoint(tmp / "other.pt")
+
+
+def test_two_hard_subsets_are_reported():
+    """The paper's hard subset (K-Means < 0.6) and the second one (Felzenszwalb < 0.8), each
+    averaged over its own frames, and the table shows both."""
+    from inseggan_ros import evaluate
+
+    results = {"inseggan": {"scores": np.array([0.9, 0.5, 0.7]), "seconds": 0.3},
+               "kmeans": {"scores": np.array([0.5, 0.7, 0.55]), "seconds": 0.1},
+               "felzenszwalb": {"scores": np.array([0.9, 0.6, 0.85]), "seconds": 0.1}}
+    s = evaluate.summarise(results, 3)
+    assert (s["hard_frames"], s["hard_felzenszwalb_frames"]) == (2, 1)
+    assert s["methods"]["inseggan"]["miou_hard"] == pytest.approx(0.8)  # frames 0 and 2
+    assert s["methods"]["inseggan"]["miou_hard_felzenszwalb"] == pytest.approx(0.5)  # frame 1
+    table = evaluate.format_table(s)
+    assert "Felzenszwalb < 0.8 (1 frames)" in table and "| inseggan | 0.700 | 0.800 | 0.500 |" in table
+    del results["felzenszwalb"]
+    assert "Felzenszwalb" not in evaluate.format_table(evaluate.summarise(results, 3))

@@ -11,6 +11,7 @@ import torch
 from conftest import installed_executable, run_cli
 
 from inseggan_ros import checkpoint
+from inseggan_ros.segment import Segmenter
 
 TINY = ["--config", "cpu", "--nf", "8", "--batch-size", "8", "--instances", "5", "--quiet",
         "--device", "cpu"]
@@ -46,15 +47,15 @@ def test_tiny_training_run_improves_reconstruction(tmp, tiny_data):
     # checkpoint round trip: a checkpoint alone rebuilds the model and gives the same output
     state = checkpoint.load(out / "last.pt")
     assert state["iteration"] == 120 and state["model_config"]["nf"] == 8
-    seg = checkpoint.load_for_inference(out / "last.pt", device="cpu")
+    seg = Segmenter.from_checkpoint(out / "last.pt", device="cpu")
     x = torch.zeros(2, 1, 64, 64) - 1
     x[:, :, 20:30, 20:40] = 0.3
     a = seg.segment_batch(x)["reconstruction"]
-    b = checkpoint.load_for_inference(out / "last.pt", device="cpu").segment_batch(x)["reconstruction"]
+    b = Segmenter.from_checkpoint(out / "last.pt", device="cpu").segment_batch(x)["reconstruction"]
     torch.testing.assert_close(a, b)
     half = checkpoint.export_for_inference(out / "last.pt", tmp / "model_fp16.pt", half=True)
     assert half.stat().st_size < 0.5 * (out / "last.pt").stat().st_size
-    c = checkpoint.load_for_inference(half, device="cpu").segment_batch(x)["reconstruction"]
+    c = Segmenter.from_checkpoint(half, device="cpu").segment_batch(x)["reconstruction"]
     assert (a - c).abs().max() < 0.05
 
 

@@ -1,0 +1,28 @@
+"""The encoder's arithmetic at test time: float32, bfloat16 (weights and activations; faster
+on a CPU that computes it natively, e.g. AVX512-BF16, with labels that agree with float32 to
+about 0.001 mIoU on the sample bags), or auto: bfloat16 where the device computes it natively,
+else float32 (emulated bfloat16 is slower than float32).
+"""
+from __future__ import annotations
+
+import copy
+
+import torch
+
+
+def native_bfloat16(device: str) -> bool:
+    """Whether `device` computes bfloat16 natively (not emulated: slower than float32)."""
+    if device.startswith("cuda"):
+        return torch.cuda.is_available() and torch.cuda.is_bf16_supported()
+    return torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported()
+
+
+class CastEncoder(torch.nn.Module):
+    """An encoder run in another dtype (a copy of its weights), float32 in and out."""
+
+    def __init__(self, E, dtype: torch.dtype):
+        super().__init__()
+        self.E, self.dtype = copy.deepcopy(E).to(dtype), dtype
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.E(x.to(self.dtype)).float()

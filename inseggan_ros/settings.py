@@ -1,0 +1,208 @@
+"""Test-time settings: how a trained model segments (`InferenceConfig`, `SmoothConfig`).
+
+A shipped model stores its settings; the segmenter node's parameters, the `inseggan`
+command-line flags and ROS 2 parameter files (config/realtime.yaml) override them. Each setting
+has ONE name everywhere: the field's name (a `SmoothConfig` field inside `InferenceConfig.smooth`
+is `smooth_<field>`), which is also the node parameter and, with dashes, the flag:
+
+    InferenceConfig.refine_hypotheses  <->  -p refine_hypotheses:=8  <->  --refine-hypotheses 8
+    InferenceConfig.smooth.iters       <->  -p smooth_iters:=5       <->  --smooth-iters 5
+
+The fields that carry a `doc` in their metadata are the exposed ones (`exposed()`); the node
+declares its parameters and the command line its flags from that list. No torch here, so that
+argument parsers and parameter files load fast.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields, replace
+from pathlib import Path
+
+# The encoder's arithmetic: float32, bfloat16 (faster where the CPU or GPU computes it natively,
+# e.g. AVX512-BF16), or auto: bfloat16 where native, else float32 (emulated bfloat16 is slower).
+PRECISIONS = ("float32", "bfloat16", "auto")
+
+
+def _doc(text: str, lo: int | None = None, hi: int | None = None,
+         choices: tuple[str, ...] | None = None) -> dict:
+    return {"doc": text, "range": (lo, hi), "choices": choices}
+
+
+@dataclass(frozen=True)
+class SmoothConfig:
+    """Depth-aware smoothing of the z-buffered labels (`smoothing.py`): mean-field inference in
+    a fully connected CRF (Kraehenbuehl and Koltun 2011) restricted to a (2 radius + 1)^2
+    window. The unary term is the model's label (weight 1), the pairwise term a Potts reward for
+    agreeing with neighbours of similar height, weight * exp(-dh^2 / 2 sigma_height^2 - dp^2 /
+    2 sigma_px^2). Labels then follow the input's height edges instead of the 64 x 64 render's.
+    Heights are the model input's units ([-1, 1] over max_height); distances in model pixels."""
+    iters: int = field(default=20, metadata=_doc(
+        "iterations of depth-aware label smoothing at the model's 64 x 64 (0 = off, also at "
+        "full resolution)", 0, 200))
+    radius: int = 4
+    sigma_height: float = 0.2
+    sigma_px: float = 2.5
+    weight: float = 3.0
+    full_res_iters: int = field(default=10, metadata=_doc(
+        "then iterations at the input's resolution near instance boundaries (0 = off)", 0, 200))
+
+    @property
+    def full_res_active(self) -> int:
+        """The full-resolution iterations that run: none when smoothing is off."""
+        return self.full_res_iters if self.iters else 0
+
+    def __post_init__(self):
+        for name, ok, valid in (("iters", self.iters >= 0, ">= 0"),
+                                ("full_res_iters", self.full_res_iters >= 0, ">= 0"),
+                                ("radius", self.radius >= 1, ">= 1"),
+                                ("sigma_height", self.sigma_height > 0, "> 0"),
+                                ("sigma_px", self.sigma_px > 0, "> 0"),
+                                ("weight", self.weight >= 0, ">= 0")):
+            if not ok:
+                raise ValueError(f"smooth_{name} {getattr(self, name)!r} invalid; "
+                                 f"valid: {valid}")
+
+
+@dataclass(frozen=True)
+class InferenceConfig:
+    """How a model segments at test time (`segment.Segmenter`): the pose fit from several
+    starting points (`refine.py`), label smoothing, the encoder's arithmetic."""
+    refine_steps: int = field(default=0, metadata=_doc(
+        "test-time refinement of the poses: Levenberg-Marquardt iterations per frame (0 = the "
+        "best-fitting starting poses as they are)", 0, 500))
+    refine_hypotheses: int = field(default=1, metadata=_doc(
+        "starting points: the encoder's poses, those on the mirrored and transposed inputs (up "
+        "to 8), then jittered ones; the best-fitting is kept", 1, 32))
+    refine_keep: int = field(default=0, metadata=_doc(
+        "how many of the starting points, the best-fitting first, are refined (0 = all; the "
+        "refinement's time grows about in proportion)", 0, 32))
+    smooth: SmoothConfig = SmoothConfig(iters=0)
+    encoder_precision: str = field(default="float32", metadata=_doc(
+        "the encoder's arithmetic: float32, bfloat16, or auto (bfloat16 where the CPU or GPU "
+        "computes it natively, else float32)", choices=PRECISIONS))
+
+    def __post_init__(self):
+        for name, ok, valid in (
+                ("refine_steps", self.refine_steps >= 0, ">= 0"),
+                ("refine_hypotheses", self.refine_hypotheses >= 1, ">= 1"),
+                ("refine_keep", self.refine_keep >= 0, ">= 0 (0 = all starting points)"),
+                ("encoder_precision", self.encoder_precision in PRECISIONS,
+                 ", ".join(PRECISIONS))):
+            if not ok:
+                raise ValueError(f"{name} {getattr(self, name)!r} invalid; valid: {valid}")
+
+    def to_dict(self) -> dict:
+        return {**{f.name: getattr(self, f.name) for f in fields(self) if f.name != "smooth"},
+                "smooth": asdict(self.smooth)}
+
+    @staticmethod
+    def from_dict(d: dict) -> "InferenceConfig":
+        """From a checkpoint's "inference" record. Models exported before the settings had one
+        name each store hypotheses, keep and precision; older ones lack smoothing."""
+        old = {"hypotheses": "refine_hypotheses", "keep": "refine_keep",
+               "precision": "encoder_precision"}
+        d = {old.get(k, k): v for k, v in d.items()}
+        unknown = set(d) - {f.name for f in fields(InferenceConfig)}
+        if unknown:
+            raise ValueError(f"unknown inference settings {sorted(unknown)}")
+        smooth = SmoothConfig(**d.pop("smooth", {"iters": 0}))
+        return InferenceConfig(**d, smooth=smooth)
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One exposed setting: its name (field, node parameter, flag), type and documentation."""
+    name: str
+    type: type
+    doc: str
+    range: tuple[int | None, int | None]
+    choices: tuple[str, ...] | None
+
+    @property
+    def flag(self) -> str:
+        return "--" + self.name.replace("_", "-")
+
+
+def _leaves(cls, prefix: str = ""):
+    for f in fields(cls):
+        if f.name == "smooth":
+            yield from _leaves(SmoothConfig, "smooth_")
+        elif "doc" in f.metadata:
+            yield prefix, f
+
+
+def exposed() -> list[Setting]:
+    """The settings the node and the command line expose, in declaration order."""
+    types = {"int": int, "str": str, "float": float}
+    return [Setting(prefix + f.name, types.get(f.type, f.type) if isinstance(f.type, str)
+                    else f.type, f.metadata["doc"], f.metadata["range"], f.metadata["choices"])
+            for prefix, f in _leaves(InferenceConfig)]
+
+
+def values(cfg: InferenceConfig) -> dict:
+    """{setting name: its value in `cfg`} for every exposed setting."""
+    out = {}
+    for s in exposed():
+        if s.name.startswith("smooth_"):
+            out[s.name] = getattr(cfg.smooth, s.name[len("smooth_"):])
+        else:
+            out[s.name] = getattr(cfg, s.name)
+    return out
+
+
+def apply(cfg: InferenceConfig, params: dict) -> InferenceConfig:
+    """`cfg` with the settings named in `params` applied (other keys, such as the node's
+    non-inference parameters, are ignored). Raises ValueError naming a bad value."""
+    names = {s.name: s for s in exposed()}
+    top, smooth = {}, {}
+    for key, value in params.items():
+        if key not in names or value is None:
+            continue
+        value = names[key].type(value)
+        if key.startswith("smooth_"):
+            smooth[key[len("smooth_"):]] = value
+        else:
+            top[key] = value
+    return replace(cfg, **top, smooth=replace(cfg.smooth, **smooth))
+
+
+def add_flags(parser, default: str) -> None:
+    """The exposed settings as command-line flags (`default`: what an unset flag means), plus
+    --profile, a segmenter parameters file the flags override."""
+    parser.add_argument("--profile", type=Path,
+                        help="segmenter parameters file, e.g. config/realtime.yaml " + default)
+    for s in exposed():
+        parser.add_argument(s.flag, type=s.type, choices=s.choices, default=None,
+                            help=f"{s.doc} {default}")
+
+
+def from_flags(args) -> dict:
+    """{setting name: value} of the flags given on the command line (unset flags are absent)."""
+    return {s.name: getattr(args, s.name) for s in exposed()
+            if getattr(args, s.name, None) is not None}
+
+
+def read_params_file(path) -> dict:
+    """The segmenter's parameters in a ROS 2 parameters file (its `/**`, then `segmenter`,
+    `/segmenter` or `/**/segmenter` section). Raises ValueError naming the file when it is not
+    one."""
+    import yaml
+
+    path = Path(path)
+    try:
+        doc = yaml.safe_load(path.read_text()) or {}
+    except (OSError, yaml.YAMLError) as e:
+        raise ValueError(f"{path}: not a readable parameters file ({e})") from None
+    out = {}
+    for node in ("/**", "segmenter", "/segmenter", "/**/segmenter"):
+        section = doc.get(node) if isinstance(doc, dict) else None
+        if isinstance(section, dict):
+            out.update(section.get("ros__parameters") or {})
+    if not out:
+        raise ValueError(f"{path}: no `/**/segmenter: ros__parameters:` section")
+    return out
+
+
+def resolve(base: InferenceConfig, args) -> InferenceConfig:
+    """`base`, then the --profile parameters file, then the explicit flags (`add_flags`)."""
+    params = read_params_file(args.profile) if getattr(args, "profile", None) else {}
+    return apply(base, {**params, **from_flags(args)})
