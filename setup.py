@@ -11,7 +11,8 @@ def share_tree(folder):
     entries = {}
     for path in sorted(glob(os.path.join(folder, "**", "*"), recursive=True)):
         if os.path.isfile(path):
-            entries.setdefault(os.path.join("share", package_name, os.path.dirname(path)), []).append(path)
+            folder_in_share = os.path.join("share", package_name, os.path.dirname(path))
+            entries.setdefault(folder_in_share, []).append(path)
     return list(entries.items())
 
 
@@ -22,7 +23,7 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml", "README.md"]),
-    ] + share_tree("models") + share_tree("bags") + share_tree("config"),
+    ] + share_tree("models") + share_tree("bags") + share_tree("config") + share_tree("launch"),
     install_requires=["setuptools"],
     extras_require={"test": ["pytest"]},
     zip_safe=True,

@@ -4,17 +4,23 @@ Topics follow the camera-driver convention (realsense2_camera, depth_image_proc)
   /camera/depth/image_rect_raw     sensor_msgs/msg/Image   16UC1 millimetres or 32FC1 metres
   /camera/depth/camera_info        sensor_msgs/msg/CameraInfo
   /camera/depth/instance_labels    sensor_msgs/msg/Image   mono8 ground truth (simulated bags only)
-The reader takes any topic names and any bag `ros2 bag record` writes; expected problems (missing,
-truncated or corrupt bag, absent topic, unsupported encoding) raise `BagError` naming the bag and
-the problem. The writer writes into a hidden temporary directory and renames it into place when
-the bag is complete, so a failed or interrupted write leaves nothing behind.
+The reader takes any topic names and any bag `ros2 bag record` writes; expected problems (missing
+or corrupt bag, absent topic, unsupported encoding) raise `BagError` naming the bag and the
+problem. Bags as robots leave them are read too: a recording cut short (recorder killed, power
+lost) or never finished (no metadata.yaml) gives every complete message in it, with one
+`TruncatedBagWarning` saying what was recovered; only a bag with nothing recoverable is an error.
+The writer writes into a hidden temporary directory and renames it into place when the bag is
+complete, so a failed or interrupted write leaves nothing behind.
 """
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import tempfile
+import warnings
 from dataclasses import dataclass, field
+from io import BytesIO
 from pathlib import Path
 from typing import Iterable, Iterator
 
@@ -83,13 +89,15 @@ def _open_reader(path: Path):
 
     if not path.exists():
         raise BagError(path, "no such bag (expected a rosbag2 directory, .mcap or .db3 file)")
+    files = _storage_files(path)
+    if any(_is_sqlite(f) and not _sqlite_intact(f) for f in files):
+        # sqlite would open some cut files and read zeros where pages are missing
+        return _recover(path, files, "a .db3 file is shorter than its header says")
     try:
         reader = Reader(path)
         reader.open()
-    except BagError:
-        raise
     except Exception as e:  # rosbags raises several types for unreadable bags
-        raise BagError(path, f"cannot open bag: {e}") from None
+        return _recover(path, files, str(e))
     return reader
 
 
@@ -133,6 +141,8 @@ def read_frames(path, depth_topic: str | None = None, info_topic: str | None = N
     `depth_topic` defaults to /camera/depth/image_rect_raw, or the bag's only Image topic;
     `info_topic` to the camera_info beside it; `labels_topic` to /camera/depth/instance_labels.
     Labels are matched to depth frames by header stamp; camera info is the latest before a frame.
+    A recording cut short or never finished gives its complete messages in recorded order, with
+    a TruncatedBagWarning (see _recover).
     """
     path = Path(path)
     reader = _open_reader(path)
@@ -189,6 +199,254 @@ def read_frames(path, depth_topic: str | None = None, info_topic: str | None = N
 
 def read_all(path, **kwargs) -> list[DepthFrame]:
     return list(read_frames(path, **kwargs))
+
+
+# ------------------------------------------------------------------ bags as robots leave them
+class TruncatedBagWarning(UserWarning):
+    """A bag was read only in part: its recording was cut short (recorder killed, power lost) or
+    never finished (no metadata.yaml). The message names the bag and what was recovered. Python
+    shows a warning once per process for the same text, so a node looping a bag warns once."""
+
+
+@dataclass(frozen=True)
+class _Connection:  # what read_frames uses of a rosbags Connection
+    topic: str
+    msgtype: str
+
+
+@dataclass
+class _TopicInfo:  # what list_topics and read_frames use of a rosbags TopicInfo
+    msgtype: str
+    msgcount: int
+
+
+@dataclass
+class _FileScan:
+    """How one storage file read: `cut` when it ends before its writer finished it."""
+    name: str
+    cut: bool = False
+    detail: str = ""
+
+
+def _storage_files(path: Path) -> list[Path]:
+    """The storage files of a bag: the file itself, or a directory's .mcap/.db3 files in split
+    order (bag_2 before bag_10)."""
+    if not path.is_dir():
+        return [path]
+    files = [p for p in path.iterdir() if p.suffix in (".mcap", ".db3") and p.is_file()]
+    return sorted(files, key=lambda p: [int(t) if t.isdigit() else t
+                                        for t in re.split(r"(\d+)", p.name)])
+
+
+def _is_sqlite(file: Path) -> bool:
+    with open(file, "rb") as f:
+        return f.read(16) == b"SQLite format 3\0"
+
+
+def _sqlite_state(file: Path) -> tuple[int, bool]:
+    """(page size, intact) of a sqlite file; intact = as long as its header says. Opened with
+    immutable=1: read only, and a journal a dead writer left is neither used nor touched."""
+    import sqlite3
+
+    con = sqlite3.connect(file.resolve().as_uri() + "?immutable=1", uri=True)
+    try:
+        (page_size,) = con.execute("PRAGMA page_size").fetchone()
+        try:  # sqlite refuses a file shorter than its header's page count
+            (pages,) = con.execute("PRAGMA page_count").fetchone()
+        except sqlite3.DatabaseError:
+            return page_size, False
+    except sqlite3.DatabaseError:  # not a database at all
+        return 0, False
+    finally:
+        con.close()
+    size = file.stat().st_size
+    return page_size, size % page_size == 0 and size >= pages * page_size
+
+
+def _sqlite_intact(file: Path) -> bool:
+    return _sqlite_state(file)[1]
+
+
+def _sqlite_messages(file: Path, scan: _FileScan) -> Iterator[tuple[str, str, int, bytes]]:
+    """(topic, type, stamp, data) of each rosbag2 message sqlite can still read from a .db3 file,
+    in recorded order, up to the first row it cannot read (best effort for a cut file)."""
+    import sqlite3
+
+    page_size, intact = _sqlite_state(file)
+    if not intact:
+        scan.cut, scan.detail = True, "is shorter than its header says"
+    count = 0
+    with tempfile.TemporaryDirectory(prefix="inseggan-bag-") as tmp:
+        src = file
+        if page_size and file.stat().st_size % page_size:
+            # sqlite reads the missing end of a last, partial page as zeros: wrong data, no error.
+            # A copy of the whole pages makes every missing page an error instead.
+            src = Path(tmp) / file.name
+            shutil.copyfile(file, src)
+            os.truncate(src, file.stat().st_size // page_size * page_size)
+        con = sqlite3.connect(src.resolve().as_uri() + "?immutable=1", uri=True)
+        try:
+            con.execute("PRAGMA writable_schema=ON")  # lets sqlite read a file shorter than its
+            topics = {i: (name, typ) for i, name, typ in  # header says; writes nothing
+                      con.execute("SELECT id, name, type FROM topics")}
+            for topic_id, stamp, data in con.execute(
+                    "SELECT topic_id, timestamp, data FROM messages ORDER BY id"):
+                count += 1
+                if topic_id in topics:
+                    yield (*topics[topic_id], int(stamp), bytes(data))
+        except sqlite3.DatabaseError as e:
+            scan.cut = True
+            scan.detail = (scan.detail + "; " if scan.detail else "") + \
+                f"sqlite read {count} rows, then: {e}"
+        finally:
+            con.close()
+
+
+def _mcap_errors() -> tuple:
+    """What reading a cut or garbled MCAP file raises: the end of what can be read."""
+    import struct
+
+    from mcap.exceptions import McapError
+
+    return McapError, struct.error, ValueError, EOFError
+
+
+def _decompress(compression: str, data: bytes) -> bytes:
+    """An MCAP chunk's records, decompressed as far as `data` goes: a cut chunk gives a prefix."""
+    try:
+        if compression == "":
+            return data
+        if compression == "zstd":  # what rosbags uses (the mcap package wants `zstandard`)
+            try:
+                from compression import zstd
+            except ImportError:
+                from backports import zstd
+            return zstd.ZstdDecompressor().decompress(data)
+        if compression == "lz4":
+            import lz4.frame
+
+            return lz4.frame.LZ4FrameDecompressor().decompress(data)
+    except Exception:  # garbled compressed data: nothing of this chunk can be trusted
+        return b""
+    return b""  # an unknown compression
+
+
+def _chunk_records(chunk) -> Iterator:
+    """The whole records in an MCAP chunk, or in the part of it that is in the file."""
+    from mcap.stream_reader import StreamReader
+
+    data = _decompress(chunk.compression, chunk.data)
+    try:
+        yield from StreamReader(BytesIO(data), skip_magic=True,
+                                record_size_limit=len(data)).records
+    except _mcap_errors():  # the end of the chunk (or of the part of it there is)
+        return
+
+
+def _mcap_records(file: Path, scan: _FileScan) -> Iterator:
+    """The records of an MCAP file up to where it is cut, read with the `mcap` package's
+    record-level stream reader. The record the file ends inside is lost, except when it is a
+    chunk: then the whole records in the part of the chunk before the cut are read too."""
+    from mcap.data_stream import ReadDataStream
+    from mcap.opcode import Opcode
+    from mcap.records import Chunk
+    from mcap.stream_reader import StreamReader
+
+    size = file.stat().st_size
+    with open(file, "rb") as f:
+        good_end = 0  # where the last whole record ends
+        try:
+            for record in StreamReader(f, emit_chunks=True, record_size_limit=size).records:
+                if isinstance(record, Chunk):
+                    yield from _chunk_records(record)
+                else:
+                    yield record
+                good_end = f.tell()
+            return  # through the footer and the closing magic: a complete file
+        except _mcap_errors():
+            pass
+        scan.cut = True
+        scan.detail = (f"({size:,} bytes) ends in, or is garbled at, the record at byte "
+                       f"{good_end:,}")
+        f.seek(good_end)
+        stream = ReadDataStream(f)
+        try:
+            if good_end and stream.read1() == Opcode.CHUNK:
+                stream.read8()  # its length, which the file does not hold
+                yield from _chunk_records(Chunk.read(stream))  # Chunk.read takes what is there
+        except _mcap_errors():
+            pass
+
+
+def _mcap_messages(file: Path, scan: _FileScan) -> Iterator[tuple[str, str, int, bytes]]:
+    """(topic, type, log time, data) of each complete message of an MCAP file, in file order."""
+    from mcap.records import Channel, Message, Schema
+
+    schemas: dict[int, str] = {}
+    channels: dict[int, tuple[str, str]] = {}
+    for record in _mcap_records(file, scan):
+        if isinstance(record, Schema):
+            schemas[record.id] = record.name
+        elif isinstance(record, Channel):
+            channels[record.id] = (record.topic, schemas.get(record.schema_id, "?"))
+        elif isinstance(record, Message) and record.channel_id in channels:
+            yield (*channels[record.channel_id], record.log_time, record.data)
+
+
+def _file_messages(file: Path, scan: _FileScan) -> Iterator[tuple[str, str, int, bytes]]:
+    return (_sqlite_messages if _is_sqlite(file) else _mcap_messages)(file, scan)
+
+
+class _PartialBag:
+    """A bag rosbags cannot open -- its recording was cut short or never finished -- read from its
+    storage files record by record: every complete message, in recorded order. It offers what
+    list_topics and read_frames use of a rosbags Reader (topics, connections, messages, close);
+    each messages() call reads the files again, as rosbags does."""
+
+    def __init__(self, path: Path, files: list[Path], reason: str):
+        self.path, self.files, self.reason = path, files, reason
+        self.scans = [_FileScan(f.name) for f in files]
+        counts: dict[str, int] = {}
+        types: dict[str, str] = {}
+        for file, scan in zip(files, self.scans):
+            for topic, msgtype, _, _ in _file_messages(file, scan):
+                counts[topic] = counts.get(topic, 0) + 1
+                types[topic] = msgtype
+        self.topics = {t: _TopicInfo(types[t], n) for t, n in counts.items()}
+        self.connections = [_Connection(t, types[t]) for t in counts]
+        self.count = sum(counts.values())
+
+    def messages(self, connections=()) -> Iterator[tuple[_Connection, int, bytes]]:
+        wanted = {c.topic: c for c in (connections or self.connections)}
+        for file in self.files:
+            for topic, _, stamp, data in _file_messages(file, _FileScan(file.name)):
+                if topic in wanted:
+                    yield wanted[topic], stamp, data
+
+    def close(self) -> None:
+        pass
+
+    def describe(self) -> str:
+        """What happened to the recording and what was recovered, for the warning."""
+        problems = [f"{s.name} {s.detail}" for s in self.scans if s.cut]
+        if self.path.is_dir() and not (self.path / "metadata.yaml").exists():
+            problems.insert(0, "no metadata.yaml: the recording was not finished")
+        state = "truncated" if any(s.cut for s in self.scans) else "unfinished"
+        per_topic = ", ".join(f"{info.msgcount} on {t}" for t, info in sorted(self.topics.items()))
+        lost = "; whatever came after the cut is lost" if state == "truncated" else ""
+        return (f"{self.path}: {state} bag ({'; '.join(problems) or self.reason}): recovered "
+                f"{self.count} complete messages ({per_topic}){lost}")
+
+
+def _recover(path: Path, files: list[Path], reason: str) -> _PartialBag:
+    """Every complete message of a bag rosbags cannot open, with one TruncatedBagWarning; a
+    BagError when there is none."""
+    bag = _PartialBag(path, files, reason)
+    if bag.count == 0:
+        raise BagError(path, f"cannot open bag: {reason}; no complete message could be "
+                             "recovered") from None
+    warnings.warn(bag.describe(), TruncatedBagWarning, stacklevel=1)
+    return bag
 
 
 # --------------------------------------------------------------------------------- writing

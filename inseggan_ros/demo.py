@@ -76,8 +76,7 @@ def main(argv=None) -> int:
     node.create_subscription(Image, "segmenter/labels", keep(seg_by, conversions.image_to_numpy), 10)
     model = ["-p", f"model_path:={args.model}"] if args.model else []
     segmenter = subprocess.Popen(
-        [_executable("segmenter"), "--ros-args", *model,
-         "-r", "depth:=camera/depth/image_rect_raw"], stderr=subprocess.PIPE, text=True)
+        [_executable("segmenter"), "--ros-args", *model], stderr=subprocess.PIPE, text=True)
     # the segmenter is up (its labels publisher is seen) before the first frame is sent
     t0 = time.monotonic()
     while node.count_publishers("segmenter/labels") == 0 and segmenter.poll() is None \

@@ -145,6 +145,7 @@ class Segmentation:
     x64: np.ndarray  # (64, 64) the model input
     roi: tuple[int, int, int, int]  # the bin region used (x0, y0, x1, y1)
     floor_depth: float  # metres
+    renders64: np.ndarray | None = None  # (n, 64, 64) each instance rendered alone, [-1, 1]
 
     @property
     def masks(self) -> np.ndarray:
@@ -246,7 +247,7 @@ class Segmenter:
             recon64 = out["reconstruction"][0, 0].cpu().numpy()
             recon = self._heights_to_depth(recon64, prep, prep.shape)
         return Segmentation(labels, recon, out["scores"][0].cpu().numpy(), labels64, prep.x,
-                            prep.roi, prep.floor_depth)
+                            prep.roi, prep.floor_depth, out["renders"][0].cpu().numpy())
 
     def _heights_to_depth(self, recon64: np.ndarray, prep, shape) -> np.ndarray:
         """Model output in [-1, 1] (64 x 64) -> metric depth at the input resolution (ROI only)."""

@@ -25,9 +25,9 @@ def key(msg):
 
 
 def raw(m):
+    channels = int(m.encoding[3:]) if m.encoding.startswith("8UC") else 1
     dt, ch = {"16UC1": ("<u2", 1), "32FC1": ("<f4", 1), "mono8": ("u1", 1),
-              "rgb8": ("u1", 3)}.get(m.encoding, ("u1", int(m.encoding[3:])
-                                                     if m.encoding.startswith("8UC") else 1))
+              "rgb8": ("u1", 3)}.get(m.encoding, ("u1", channels))
     a = np.frombuffer(bytes(m.data), np.uint8).reshape(m.height, m.step)
     a = a[:, : m.width * ch * np.dtype(dt).itemsize].copy().view(dt)
     return a.reshape(m.height, m.width, ch) if ch > 1 else a.reshape(m.height, m.width)
@@ -89,6 +89,7 @@ def main():
         last_diag["_level"] = str(int.from_bytes(bytes(mine[-1].status[0].level), "little")
                                   if isinstance(mine[-1].status[0].level, bytes)
                                   else int(mine[-1].status[0].level))
+
     def obj(kind):  # one array per stamp (None where that message did not arrive)
         out = np.empty(len(stamps), dtype=object)
         for i, s in enumerate(stamps):

@@ -2,7 +2,10 @@
 import os
 import signal
 import subprocess
+import sys
 import time
+import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -34,7 +37,9 @@ def test_write_read_round_trip(tmp, storage, encoding):
     assert topics[bags.DEPTH_TOPIC] == ("sensor_msgs/msg/Image", 3)
     assert topics[bags.INFO_TOPIC] == ("sensor_msgs/msg/CameraInfo", 3)
     assert topics[bags.LABELS_TOPIC] == ("sensor_msgs/msg/Image", 3)
-    back = read_all(tmp / "bag")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", bags.TruncatedBagWarning)  # a complete bag: no warning
+        back = read_all(tmp / "bag")
     assert [f.stamp_ns for f in back] == [f[0] for f in frames]
     for f, (stamp, depth, labels, info) in zip(back, frames):
         assert f.encoding == encoding and f.frame_id == bags.DEFAULT_FRAME_ID
@@ -106,14 +111,18 @@ def test_missing_bag(tmp):
     _expect(tmp / "nope", "no such bag")
 
 
-def test_truncated_and_corrupt_bags(tmp):
+def test_nothing_recoverable_is_an_error(tmp):
+    rng = np.random.default_rng(3)
     bags.write_frames(tmp / "good", _frames(5))
-    mcap = next((tmp / "good").glob("*.mcap"))
-    data = mcap.read_bytes()
-    (tmp / "trunc.mcap").write_bytes(data[: len(data) // 2])
-    _expect(tmp / "trunc.mcap", "cannot open bag|corrupt or truncated")
-    (tmp / "junk.mcap").write_bytes(os.urandom(4096))
-    _expect(tmp / "junk.mcap", "cannot open bag")
+    mcap = next((tmp / "good").glob("*.mcap")).read_bytes()
+    junk = rng.integers(0, 256, 4096, dtype=np.uint8).tobytes()
+    files = {"junk.mcap": junk, "empty.mcap": b"", "magic_only.mcap": mcap[:8],
+             "header_only.mcap": mcap[:60],  # cut before the first message
+             "junk.db3": b"SQLite format 3\0" + junk, "empty.db3": b""}
+    for name, content in files.items():
+        (tmp / name).write_bytes(content)
+        _expect(tmp / name, "cannot open bag")
+    _expect(tmp / "header_only.mcap", "no complete message could be recovered")
     (tmp / "empty").mkdir()
     _expect(tmp / "empty", "cannot open bag")
 
@@ -187,3 +196,286 @@ def test_cli_simulate_bag_is_atomic(tmp):
     assert proc.returncode == 130
     assert not (tmp / "killed").exists()
     assert [p.name for p in tmp.iterdir()] == ["cones"]
+
+
+# ------------------------------------------------------------------ bags as robots leave them
+def _read_warned(path, **kw):
+    """read_all, and the one TruncatedBagWarning it must emit (asserted)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        frames = read_all(path, **kw)
+    warned = [str(w.message) for w in caught if issubclass(w.category, bags.TruncatedBagWarning)]
+    assert len(warned) == 1, warned
+    assert warned[0].startswith(f"{path}: ")
+    return frames, warned[0]
+
+
+def _assert_originals(got, originals, labels_from=None):
+    """`got` are the first frames of `originals`, identical; frames from index `labels_from` on
+    may have lost their labels (their label message was after the cut)."""
+    assert len(got) <= len(originals)
+    for k, (g, o) in enumerate(zip(got, originals)):
+        assert (g.stamp_ns, g.frame_id, g.encoding) == (o.stamp_ns, o.frame_id, o.encoding)
+        np.testing.assert_array_equal(g.depth, o.depth)
+        np.testing.assert_array_equal(g.camera_info.K, o.camera_info.K)
+        if labels_from is None or k < labels_from:
+            np.testing.assert_array_equal(g.labels, o.labels)
+        else:
+            assert g.labels is None
+
+
+def _message_ends(mcap_file) -> dict[str, list[int]]:
+    """{topic: where each message record ends in the file} of a complete MCAP file with
+    uncompressed chunks. A message record ends with the message's bytes, so each is found by
+    searching the file for them: independent of the reader under test."""
+    from rosbags.rosbag2 import Reader
+
+    data = mcap_file.read_bytes()
+    ends: dict[str, list[int]] = {}
+    with Reader(mcap_file) as reader:
+        for conn, _, raw in reader.messages():
+            pos = data.find(raw)
+            assert pos > 0 and data.find(raw, pos + 1) == -1  # unique: stamps and depths differ
+            ends.setdefault(conn.topic, []).append(pos + len(raw))
+    return ends
+
+
+def _chunks(mcap_file) -> list[tuple[int, int]]:
+    """(where the chunk record ends, its last message time) of each chunk, from the summary."""
+    from mcap.reader import make_reader
+
+    with open(mcap_file, "rb") as f:
+        return [(c.chunk_start_offset + c.chunk_length, c.message_end_time)
+                for c in make_reader(f).get_summary().chunk_indexes]
+
+
+def _chunk_ends(mcap_file) -> list[int]:
+    return [end for end, _ in _chunks(mcap_file)]
+
+
+def _rewrite_mcap(src, dst, **writer_options):
+    """The messages of an MCAP file written again by the `mcap` package's writer: unchunked (as
+    rosbag2's "fastwrite" preset writes) or in compressed chunks."""
+    from mcap.records import Channel, Message, Schema
+    from mcap.stream_reader import StreamReader
+    from mcap.writer import Writer
+
+    schemas, channels = {}, {}
+    with open(src, "rb") as f, open(dst, "wb") as out:
+        writer = Writer(out, **writer_options)
+        writer.start(profile="ros2", library="test")
+        for r in StreamReader(f).records:
+            if isinstance(r, Schema) and r.id not in schemas:
+                schemas[r.id] = writer.register_schema(r.name, r.encoding, r.data)
+            elif isinstance(r, Channel) and r.id not in channels:
+                channels[r.id] = writer.register_channel(r.topic, r.message_encoding,
+                                                         schemas[r.schema_id], r.metadata)
+            elif isinstance(r, Message):
+                writer.add_message(channels[r.channel_id], r.log_time, r.data, r.publish_time,
+                                   r.sequence)
+        writer.finish()
+
+
+@pytest.mark.parametrize("layout", ["chunks", "unchunked"])
+def test_cut_mcap_bag_gives_every_complete_frame(tmp, layout):
+    bags.write_frames(tmp / "bag", _frames(30, shape=(96, 128)))  # 1.1 MB: two chunks
+    originals = read_all(tmp / "bag")
+    mcap = next((tmp / "bag").glob("*.mcap"))
+    if layout == "unchunked":
+        _rewrite_mcap(mcap, tmp / "unchunked.mcap", use_chunking=False)
+        mcap = tmp / "unchunked.mcap"
+    data = mcap.read_bytes()
+    ends = _message_ends(mcap)
+    depth_ends, label_ends = ends[bags.DEPTH_TOPIC], ends[bags.LABELS_TOPIC]
+    assert len(depth_ends) == len(label_ends) == 30
+    chunk_ends = _chunk_ends(mcap)
+    assert len(chunk_ends) == (2 if layout == "chunks" else 0)
+    cuts = {depth_ends[0] - 1, depth_ends[0], label_ends[0], depth_ends[7] + 1, label_ends[7] - 1,
+            depth_ends[-1], label_ends[-1], len(data) - 1}
+    cuts |= {c + d for c in chunk_ends[:1] for d in (-1, 0, 10)}
+    rng = np.random.default_rng(18)
+    cuts |= {int(c) for c in rng.integers(0, len(data), 8)}
+    for i, cut in enumerate(sorted(cuts)):
+        # as a robot leaves it: a directory without metadata.yaml, or the storage file alone
+        bag = tmp / f"cut{i}" / "cut.mcap" if i % 2 else tmp / f"cut{i}.mcap"
+        bag.parent.mkdir(exist_ok=True)
+        bag.write_bytes(data[:cut])
+        bag = bag.parent if i % 2 else bag
+        n = sum(e <= cut for e in depth_ends)
+        if n == 0:
+            with pytest.raises(BagError), warnings.catch_warnings():
+                warnings.simplefilter("ignore", bags.TruncatedBagWarning)  # a camera_info only
+                read_all(bag)
+            continue
+        got, warning = _read_warned(bag)
+        assert len(got) == n, (cut, len(data))
+        _assert_originals(got, originals, labels_from=sum(e <= cut for e in label_ends))
+        assert "truncated bag" in warning and f"{n} on {bags.DEPTH_TOPIC}" in warning
+        assert ("no metadata.yaml" in warning) == (i % 2 == 1)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", bags.TruncatedBagWarning)
+            assert bags.list_topics(bag)[bags.DEPTH_TOPIC] == (bags.IMAGE_TYPE, n)
+    assert any(sum(e <= c for e in depth_ends) == 30 for c in cuts)  # all frames, no footer
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_unfinished_bag_without_metadata(tmp, storage):
+    bags.write_frames(tmp / "bag", _frames(5), storage=storage)
+    originals = read_all(tmp / "bag")
+    (tmp / "bag" / "metadata.yaml").unlink()
+    got, warning = _read_warned(tmp / "bag")
+    assert len(got) == 5
+    _assert_originals(got, originals)
+    assert "unfinished bag (no metadata.yaml" in warning
+    assert "recovered 15 complete messages" in warning and f"5 on {bags.DEPTH_TOPIC}" in warning
+
+
+def test_cut_sqlite_bag_gives_a_correct_prefix(tmp):
+    """Best effort: sqlite reads what it still can of a cut .db3, in recorded order."""
+    bags.write_frames(tmp / "bag", _frames(30, shape=(96, 128)), storage="sqlite3")
+    originals = read_all(tmp / "bag")
+    db = next((tmp / "bag").glob("*.db3"))
+    data = db.read_bytes()
+    rng = np.random.default_rng(18)
+    cuts = sorted({len(data) - 4096, len(data) - 5000,
+                   *range(len(data) - 4095, len(data), 512),  # inside the last page
+                   *(int(c) for c in rng.integers(0, len(data), 10))})
+    recovered = {}
+    for i, cut in enumerate(cuts):
+        bag = tmp / f"cut{i}"  # no metadata.yaml: the recorder died
+        bag.mkdir()
+        (bag / db.name).write_bytes(data[:cut])
+        try:
+            got, warning = _read_warned(bag)
+        except BagError as e:
+            assert str(bag) in str(e)
+            continue
+        assert "truncated bag" in warning and f"{len(got)} on {bags.DEPTH_TOPIC}" in warning
+        _assert_originals(got, originals, labels_from=len(got) - (got[-1].labels is None))
+        recovered[cut] = len(got)
+    assert recovered.get(len(data) - 4095, 0) >= 25, recovered  # most of a bag cut near its end
+
+
+def test_cli_shows_the_warning_once(tmp):
+    bags.write_frames(tmp / "bag", _frames(5))
+    (tmp / "bag" / "metadata.yaml").unlink()
+    mcap = next((tmp / "bag").glob("*.mcap"))
+    mcap.write_bytes(mcap.read_bytes()[:-100])
+    p = run_cli("bag-info", tmp / "bag")
+    assert p.returncode == 0, p.stderr
+    # once, though bag-info opens the bag twice (Python shows a warning text once)
+    assert p.stderr.count(f"TruncatedBagWarning: {tmp / 'bag'}: truncated bag") == 1, p.stderr
+    assert f"5 on {bags.DEPTH_TOPIC}" in p.stderr
+
+
+def test_bin_replay_node_replays_a_cut_bag_and_warns_once(tmp):
+    """The node reads bags through read_frames: a cut recording replays (looping, so it is read
+    many times) over real DDS to a separate receiver process, with one warning in its log."""
+    bags.write_frames(tmp / "bag", _frames(8))
+    originals = {f.stamp_ns: f for f in read_all(tmp / "bag")}
+    (tmp / "bag" / "metadata.yaml").unlink()
+    mcap = next((tmp / "bag").glob("*.mcap"))
+    ends = _message_ends(mcap)
+    cut = ends[bags.DEPTH_TOPIC][5] + 1  # frames 0-5 whole, labels of frame 5 lost
+    mcap.write_bytes(mcap.read_bytes()[:cut])
+    out = tmp / "received.npz"
+    recv = subprocess.Popen([sys.executable, str(Path(__file__).parent / "receiver.py"), str(out),
+                             "12", "60", "/cut_bag"], stdout=subprocess.PIPE, text=True)
+    assert recv.stdout.readline().strip() == "receiver ready"
+    replay = subprocess.Popen([str(installed_executable("bin_replay")), "--ros-args", "-r",
+                               "__ns:=/cut_bag", "-p", "source:=bag", "-p",
+                               f"bag_path:={tmp / 'bag'}", "-p", "loop:=true", "-p", "rate:=30.0",
+                               "-p", "restamp:=false"],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert recv.wait(timeout=90) == 0, "receiver did not get its frames"
+    finally:
+        if replay.poll() is None:
+            replay.send_signal(signal.SIGINT)
+        try:
+            replay.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            replay.kill()
+            replay.wait()
+        log = replay.stderr.read()
+    assert replay.returncode == 0 and "Traceback" not in log, log
+    assert log.count(f"{tmp / 'bag'}: truncated bag") == 1, log  # however often it loops
+    assert "recovered 17 complete messages" in log
+    got = dict(np.load(out, allow_pickle=True))
+    assert set(got["stamp"]) <= set(sorted(originals)[:6])  # nothing from after the cut
+    assert len(got["stamp"]) == 12  # from 6 frames: it looped
+    for stamp, depth, labels in zip(got["stamp"], got["depth"], got["labels"]):
+        np.testing.assert_array_equal(depth, originals[stamp].depth)
+        if stamp != sorted(originals)[5]:
+            np.testing.assert_array_equal(labels, originals[stamp].labels)
+
+
+@pytest.mark.parametrize("compression", ["zstd", "lz4"])
+def test_cut_compressed_mcap_bag(tmp, compression):
+    """Compressed chunks (rosbag2's default MCAP writer uses zstd): every frame of the whole chunks
+    before the cut, and of the part of the cut chunk that decompresses."""
+    from mcap.writer import CompressionType
+    from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+    from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
+
+    bags.write_frames(tmp / "bag", _frames(30, shape=(96, 128)))
+    originals = read_all(tmp / "bag")
+    stamps = [f.stamp_ns for f in originals]
+    mcap = tmp / "compressed.mcap"
+    if compression == "lz4":  # chunks of 200 kB, as a recorder configured so writes them
+        _rewrite_mcap(next((tmp / "bag").glob("*.mcap")), mcap, chunk_size=200_000,
+                      compression=CompressionType.LZ4)
+    else:
+        writer = Writer(tmp / "zstd", version=9, storage_plugin=StoragePlugin.MCAP)
+        writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+        writer.open()
+        with Reader(tmp / "bag") as reader:
+            conns = {c.topic: writer.add_connection(c.topic, c.msgtype, typestore=bags._typestore())
+                     for c in reader.connections}
+            for conn, t, raw in reader.messages():
+                writer.write(conns[conn.topic], t, raw)
+        writer.close()
+        mcap = next((tmp / "zstd").glob("*.mcap"))
+    data = mcap.read_bytes()
+    assert data.find(originals[0].depth.tobytes()[:200]) == -1  # compressed indeed
+    chunks = _chunks(mcap)
+    assert len(chunks) >= 2
+    whole = [sum(s < end_time for s in stamps) for _, end_time in chunks]  # frames in chunks 0..j
+    rng = np.random.default_rng(18)
+    cuts = {*(end for end, _ in chunks), *(end - 10 for end, _ in chunks),
+            *(int(c) for c in rng.integers(0, len(data), 6))}
+    counts = []
+    for cut in sorted(cuts):
+        (tmp / "cut.mcap").write_bytes(data[:cut])
+        try:
+            got, warning = _read_warned(tmp / "cut.mcap")
+        except BagError:
+            got = []
+        _assert_originals(got, originals,
+                          labels_from=len(got) - bool(got and got[-1].labels is None))
+        counts.append(len(got))
+        for j, (end, _) in enumerate(chunks):
+            if cut == end:  # whole chunks 0..j
+                assert len(got) >= whole[j], (cut, j)
+            if cut == end - 10:  # whole chunks 0..j-1 and most of chunk j
+                assert len(got) > (whole[j - 1] if j else 0), (cut, j)
+    assert counts == sorted(counts)  # a longer file never gives fewer frames
+
+
+def test_split_recording_cut_in_its_last_file(tmp):
+    """A recording split by size (rec_9.mcap, rec_10.mcap, ...) whose recorder died in the last
+    file: the files in split order, the last one up to its cut."""
+    frames = _frames(10)
+    bags.write_frames(tmp / "a", frames[:5])
+    bags.write_frames(tmp / "b", frames[5:])
+    originals = read_all(tmp / "a") + read_all(tmp / "b")
+    (tmp / "rec").mkdir()
+    next((tmp / "a").glob("*.mcap")).rename(tmp / "rec" / "rec_9.mcap")
+    second = next((tmp / "b").glob("*.mcap"))
+    cut = _message_ends(second)[bags.LABELS_TOPIC][2]  # frames 5-7 whole
+    (tmp / "rec" / "rec_10.mcap").write_bytes(second.read_bytes()[:cut])
+    got, warning = _read_warned(tmp / "rec")
+    assert len(got) == 8
+    _assert_originals(got, originals)
+    assert "rec_10.mcap (" in warning and "rec_9.mcap" not in warning  # only the last is cut
+    assert f"8 on {bags.DEPTH_TOPIC}" in warning

@@ -17,11 +17,12 @@ from inseggan_ros.sim.scene import BinSimulator, SceneConfig
 HERE = Path(__file__).parent
 
 
-def start_replay(ns, *params):
+def start_replay(ns, *params, env=None):
     args = [str(installed_executable("bin_replay")), "--ros-args", "-r", f"__ns:={ns}"]
     for p in params:
         args += ["-p", p]
-    return subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=env)
 
 
 def stop(proc):
@@ -105,7 +106,25 @@ def test_max_frames_ends_the_node(tmp):
         assert replay.wait(timeout=60) == 0
     finally:
         stop(replay)
-    assert "published 3 frames" in replay.stderr.read()
+    err = replay.stderr.read()
+    assert "published 3 frames" in err
+    # no Fast DDS profile set (conftest sets none): the node sets the shipped one itself
+    assert "Fast DDS profile for large frames: " in err and "fastdds_large_frames.xml" in err
+
+
+def test_a_profile_the_user_set_is_left_alone(tmp):
+    import os
+
+    env = dict(os.environ, FASTRTPS_DEFAULT_PROFILES_FILE=str(tmp / "mine.xml"))
+    (tmp / "mine.xml").write_text('<?xml version="1.0" encoding="UTF-8"?>\n<profiles xmlns='
+                                  '"http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"/>\n')
+    replay = start_replay("/maxf2", "max_frames:=3", "rate:=30.0", env=env)
+    try:
+        assert replay.wait(timeout=60) == 0
+    finally:
+        stop(replay)
+    err = replay.stderr.read()
+    assert "published 3 frames" in err and "Fast DDS profile" not in err, err
 
 
 @pytest.mark.parametrize("params,message", [
@@ -142,3 +161,21 @@ def test_parameter_changes_are_validated_at_run_time():
         assert replay.poll() is None, "the node keeps running"
     finally:
         assert stop(replay) == 0
+
+
+def test_large_frames_arrive_with_only_what_ros2_run_sets_up():
+    """No profile variable set: each process applies the shipped Fast DDS profile itself (as
+    the nodes do, nodes/common.py), and 1280 x 720 frames at 30 Hz all arrive (with Fast DDS's
+    built-in transports 144 of 600 did here: tests/delivery_probe.py)."""
+    probe = [sys.executable, str(HERE / "delivery_probe.py")]
+    sub = subprocess.Popen([*probe, "sub", "1280", "720", "90", "30", "ros2run"],
+                           stdout=subprocess.PIPE, text=True)
+    try:
+        assert sub.stdout.readline().strip() == "ready"
+        pub = subprocess.run([*probe, "pub", "1280", "720", "90", "30", "ros2run"],
+                             capture_output=True, text=True, timeout=90)
+        assert pub.returncode == 0, pub.stderr
+        out, _ = sub.communicate(timeout=60)
+    finally:
+        stop(sub)
+    assert int(out.strip().splitlines()[-1]) >= 88, out

@@ -18,8 +18,7 @@ HERE = Path(__file__).parent
 
 
 def start_segmenter(ns, *params, extra=()):
-    args = [str(installed_executable("segmenter")), "--ros-args", "-r", f"__ns:={ns}",
-            "-r", "depth:=camera/depth/image_rect_raw", *extra]
+    args = [str(installed_executable("segmenter")), "--ros-args", "-r", f"__ns:={ns}", *extra]
     for p in params:
         args += ["-p", p]
     return subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -235,11 +234,11 @@ def test_parameter_changes_are_validated_at_run_time():
         assert stop(seg) == 0
 
 
-@pytest.mark.parametrize("profile", ["realtime", "fastest", "quality"])
+@pytest.mark.parametrize("profile", ["realtime", "fastest", "quality", "d435"])
 def test_shipped_parameter_files_set_the_segmenter(profile):
     """config/<profile>.yaml, as installed, applies to the segmenter in any namespace (its
     `/**/segmenter` section), and a -p after it still wins."""
-    from inseggan_ros.params import read_params_file
+    from inseggan_ros.settings import read_params_file
 
     path = shipped_params_file(profile)
     wanted = read_params_file(path)
@@ -252,4 +251,3 @@ def test_shipped_parameter_files_set_the_segmenter(profile):
         assert set_param(f"{ns}/segmenter", "refine_keep", "-1").startswith("rejected")  # 0..32
     finally:
         assert stop(seg) == 0
-

@@ -1,27 +1,28 @@
-"""bin_replay: publish depth frames of bins, simulated live with pybullet or replayed from a bag.
+r"""bin_replay: publish depth frames of bins, simulated live with pybullet or replayed from a bag.
 
     ros2 run inseggan_ros bin_replay                                   # simulated cylinders, 5 Hz
     ros2 run inseggan_ros bin_replay --ros-args -p object:=hex_nut -p noise:=realsense
-    ros2 run inseggan_ros bin_replay --ros-args -p source:=bag -p bag_path:=cylinder_sim -p loop:=true
+    ros2 run inseggan_ros bin_replay --ros-args -p source:=bag -p bag_path:=cylinder_sim \
+        -p loop:=true
 
-Publishes (sensor-data QoS; relative names, so namespaces and remapping work):
+Publishes (sensor-data QoS; relative names, so namespaces and remapping work; the segmenter
+listens on the same names, so the two started side by side connect with no remap):
     camera/depth/image_rect_raw     sensor_msgs/Image       16UC1 mm (or 32FC1 m)
     camera/depth/camera_info        sensor_msgs/CameraInfo
     camera/depth/instance_labels    sensor_msgs/Image mono8 ground truth, when known
 Simulated frame k is scene_seed(seed, "test", k): the same scenes as the test split of
-`inseggan simulate --seed <seed>` with the same object/camera/noise settings.
+`inseggan simulate --seed <seed>` with the same object/camera/noise settings. Unless
+FASTRTPS_DEFAULT_PROFILES_FILE is set, the node uses the shipped Fast DDS profile for large
+frames (nodes/common.py).
 """
 from __future__ import annotations
 
 import sys
 import threading
 import time
-from pathlib import Path
 
 import rclpy
-from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
-                                SetParametersResult)
-from rclpy.executors import ExternalShutdownException
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 from rclpy.task import Future
@@ -32,7 +33,9 @@ from .. import bags, image_codec
 from ..sim.camera import PRESETS
 from ..sim.noise import NOISE_PRESETS
 from ..sim.objects import OBJECTS
-from . import conversions
+from ..paths import resolve_bag
+from . import common, conversions
+from .common import ConfigError
 
 CHOICES = {
     "source": ("sim", "bag"),
@@ -43,32 +46,6 @@ CHOICES = {
 }
 
 
-class ConfigError(Exception):
-    """A parameter value the node cannot start with."""
-
-
-def shipped_bags_dir() -> Path | None:
-    try:
-        from ament_index_python.packages import get_package_share_directory
-
-        return Path(get_package_share_directory("inseggan_ros")) / "bags"
-    except Exception:  # not installed through ament: fall back to the source tree
-        here = Path(__file__).resolve().parents[2] / "bags"
-        return here if here.is_dir() else None
-
-
-def resolve_bag(path: str) -> Path:
-    """A bag path, or the name of a bag shipped in the package's bags/ folder."""
-    p = Path(path).expanduser()
-    if p.exists() or p.is_absolute() or "/" in path:
-        return p
-    shipped = shipped_bags_dir()
-    if shipped and (shipped / path).exists():
-        return shipped / path
-    names = sorted(x.name for x in shipped.iterdir()) if shipped and shipped.is_dir() else []
-    raise ConfigError(f"bag_path {path!r}: no such bag; shipped bags: {', '.join(names) or 'none'}")
-
-
 class BinReplay(Node):
     def __init__(self, **kwargs):
         super().__init__("bin_replay", **kwargs)
@@ -77,11 +54,10 @@ class BinReplay(Node):
         self._validate(self.p)
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
-        self.pub_depth = self.create_publisher(Image, "camera/depth/image_rect_raw",
-                                               qos_profile_sensor_data)
-        self.pub_info = self.create_publisher(CameraInfo, "camera/depth/camera_info",
+        self.pub_depth = self.create_publisher(Image, common.DEPTH_TOPIC, qos_profile_sensor_data)
+        self.pub_info = self.create_publisher(CameraInfo, common.CAMERA_INFO_TOPIC,
                                               qos_profile_sensor_data)
-        self.pub_labels = self.create_publisher(Image, "camera/depth/instance_labels",
+        self.pub_labels = self.create_publisher(Image, common.LABELS_TOPIC,
                                                 qos_profile_sensor_data)
         self.frames_published = 0
         self.done = Future()
@@ -104,15 +80,8 @@ class BinReplay(Node):
 
     # ------------------------------------------------------------------ parameters
     def _declare(self) -> None:
-        def d(desc, read_only=True, int_range=None, float_range=None):
-            pd = ParameterDescriptor(description=desc, read_only=read_only)
-            if int_range:
-                pd.integer_range = [IntegerRange(from_value=int_range[0], to_value=int_range[1],
-                                                 step=1)]
-            if float_range:
-                pd.floating_point_range = [FloatingPointRange(
-                    from_value=float_range[0], to_value=float_range[1], step=0.0)]
-            return pd
+        def d(desc, read_only=True, **ranges):  # most of this node's parameters are read-only
+            return common.descriptor(desc, read_only=read_only, **ranges)
 
         specs = {
             "source": ("sim", d("'sim': simulate bins live; 'bag': replay a rosbag2 bag")),
@@ -140,16 +109,13 @@ class BinReplay(Node):
                                 int_range=(0, 2 ** 31 - 1))),
         }
         self._names = list(specs)
-        for name, (default, desc) in specs.items():
-            try:
-                self.declare_parameter(name, default, desc)
-            except Exception as e:  # out of range or wrong type on the command line
-                raise ConfigError(f"parameter {name}: {e}") from None
+        common.declare(self, specs)
 
     def _validate(self, p: dict) -> None:
         for name, valid in CHOICES.items():
             if p[name] not in valid:
-                raise ConfigError(f"parameter {name}={p[name]!r} invalid; valid: {', '.join(valid)}")
+                raise ConfigError(f"parameter {name}={p[name]!r} invalid; valid: "
+                                  f"{', '.join(valid)}")
         if p["source"] == "sim" and p["rate"] <= 0:
             raise ConfigError(f"parameter rate={p['rate']} invalid for source 'sim'; valid: > 0 Hz")
 
@@ -234,25 +200,17 @@ class BinReplay(Node):
         self._stop.set()
         self._thread.join(timeout=5.0)
 
+    close = stop  # common.run calls it before the node is destroyed
+
+
+def _spin_until_done(node: BinReplay) -> None:
+    rclpy.spin_until_future_complete(node, node.done)
+    node.get_logger().info(f"published {node.frames_published} frames; done")
+
 
 def main(args=None) -> int:
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = BinReplay()
-        rclpy.spin_until_future_complete(node, node.done)
-        node.get_logger().info(f"published {node.frames_published} frames; done")
-        return 0
-    except (ConfigError, bags.BagError) as e:
-        print(f"bin_replay: error: {e}", file=sys.stderr)
-        return 1
-    except (KeyboardInterrupt, ExternalShutdownException):
-        return 0
-    finally:
-        if node is not None:
-            node.stop()
-            node.destroy_node()
-        rclpy.try_shutdown()
+    return common.run("bin_replay", BinReplay, args, errors=(bags.BagError,),
+                      spin=_spin_until_done)
 
 
 if __name__ == "__main__":

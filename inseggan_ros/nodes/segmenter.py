@@ -1,22 +1,35 @@
-"""segmenter: depth frames in, instance labels and masks out (InSeGAN, a trained model).
+r"""segmenter: depth frames in, instance labels and masks out (InSeGAN, a trained model).
 
     ros2 run inseggan_ros segmenter                                  # the shipped default model
-    ros2 run inseggan_ros segmenter --ros-args -r depth:=/camera/depth/image_rect_raw \\
+    ros2 run inseggan_ros segmenter --ros-args \
+        -r camera/depth/image_rect_raw:=/camera/camera/depth/image_rect_raw \
         -p model_path:=models/cylinder/model.pt -p roi:=[58,58,166,166]
 
-Subscribes (sensor-data QoS, keep-last 1: a slow frame never builds a queue):
-    depth                 sensor_msgs/Image   16UC1 / mono16 millimetres or 32FC1 metres
-                          (default topic: camera/depth/image_rect_raw, as bin_replay publishes)
+Subscribes (sensor-data QoS, keep-last 1: a slow frame never builds a queue; relative names, the
+ones bin_replay and camera drivers publish, so the two connect with no remap):
+    camera/depth/image_rect_raw  sensor_msgs/Image   16UC1 / mono16 millimetres or 32FC1 metres
+    camera/depth/camera_info     sensor_msgs/CameraInfo, for the picks (the latest is used);
+                                 when only the depth topic is remapped, the camera_info beside
+                                 it (the same folder), as image_transport pairs them
 Publishes, with the input's header (stamp and frame_id unchanged):
     ~/labels              sensor_msgs/Image mono8: 0 background, 1..n instances, input size
     ~/masks               sensor_msgs/Image 8UC<n>: channel k is 255 where instance k+1 is
     ~/overlay             sensor_msgs/Image rgb8 colour overlay (only computed when subscribed)
     ~/reconstruction      sensor_msgs/Image 32FC1 metres, the model's re-rendered depth
                           (only when subscribed; 0 outside the bin)
-    /diagnostics          diagnostic_msgs/DiagnosticArray: rate, latency, error counters
+    ~/picks               geometry_msgs/PoseArray, one pose per instance in pick order
+                          (picks.py: free ones first, then the top-most): position = its
+                          visible surface's centroid, orientation's z axis = the surface
+                          normal there, toward the camera; camera optical frame (only when
+                          ~/picks or ~/markers is subscribed)
+    ~/markers             visualization_msgs/MarkerArray for RViz: normal arrows and ranks
+    /diagnostics          diagnostic_msgs/DiagnosticArray: rate, latency, error counters; a
+                          second status '<node>: picks' (WARN while CameraInfo is missing or
+                          of another size: labels are still published, picks not)
 A bad frame (encoding, size, empty, no valid depth, a resolution change) is logged (throttled),
 counted in diagnostics and skipped; the node keeps serving. A missing or incompatible model
-stops the node at start-up with one clear error line.
+stops the node at start-up with one clear error line. Unless FASTRTPS_DEFAULT_PROFILES_FILE
+is set, the node uses the shipped Fast DDS profile for large frames (common.py).
 """
 from __future__ import annotations
 
@@ -26,52 +39,21 @@ import sys
 import time
 from collections import Counter, deque
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
-                                ParameterType, SetParametersResult)
-from rclpy.executors import ExternalShutdownException
+from rcl_interfaces.msg import ParameterType, SetParametersResult
 from rclpy.node import Node
 from rclpy.qos import QoSHistoryPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import Image
 
-from .. import image_codec
+from .. import image_codec, settings
 from ..checkpoint import CheckpointError
-from . import conversions
+from . import common, conversions
 
-DEFAULT_MODEL = "cylinder"  # models/<name>/model.pt, shipped with the package
-
-
-class ConfigError(Exception):
-    """A parameter value the node cannot start with."""
-
-
-def shipped_models_dir() -> Path | None:
-    try:
-        from ament_index_python.packages import get_package_share_directory
-
-        return Path(get_package_share_directory("inseggan_ros")) / "models"
-    except Exception:  # not installed through ament: the source tree
-        here = Path(__file__).resolve().parents[2] / "models"
-        return here if here.is_dir() else None
-
-
-def resolve_model(path: str) -> Path:
-    """'' = the default shipped model; a shipped model's name; or a checkpoint path."""
-    name = path or DEFAULT_MODEL
-    p = Path(name).expanduser()
-    if p.is_file() or p.is_absolute() or "/" in name or name.endswith(".pt"):
-        return p
-    shipped = shipped_models_dir()
-    if shipped and (shipped / name / "model.pt").is_file():
-        return shipped / name / "model.pt"
-    names = sorted(x.name for x in shipped.iterdir() if (x / "model.pt").is_file()) \
-        if shipped and shipped.is_dir() else []
-    raise ConfigError(f"model_path {path!r}: no such model file or shipped model; shipped "
-                      f"models: {', '.join(names) or 'none'}")
+# DEFAULT_MODEL and resolve_model are imported from here by the tests and bench_node
+from ..paths import DEFAULT_MODEL, resolve_model  # noqa: F401
+from .common import ConfigError
 
 
 def _parse_roi(v) -> tuple[int, int, int, int] | None:
@@ -136,7 +118,12 @@ class Segmenter(Node):
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         qos = copy.copy(qos_profile_sensor_data)  # rclpy's profile is shared: change a copy
         qos.history, qos.depth = QoSHistoryPolicy.KEEP_LAST, 1
-        self.sub = self.create_subscription(Image, "depth", self._on_depth, qos)
+        self.sub = self.create_subscription(Image, common.DEPTH_TOPIC, self._on_depth, qos)
+        if self.resolve_topic_name("depth") != self.resolve_topic_name("depth", only_expand=True):
+            self.get_logger().warning(  # the name this node subscribed to before
+                f"the remap of 'depth' has no effect: the depth topic is {common.DEPTH_TOPIC} "
+                f"(remap that name: -r {common.DEPTH_TOPIC}:=/your/depth/topic)")
+        self._init_picks(qos)
 
         self.counts = Counter()  # received, segmented, skipped and skipped:<reason>
         window = self.get_parameter("latency_window").value
@@ -152,7 +139,90 @@ class Segmenter(Node):
         self.create_timer(self.get_parameter("diagnostics_period").value, self._publish_diagnostics)
         self.get_logger().info(
             f"model {self.model_path} ({n} x instances, tau {self.model.tau:.3f}, device "
-            f"{self.model.device}); listening on {self.sub.topic_name}")
+            f"{self.model.device}); listening on {self.sub.topic_name} (camera info: "
+            f"{self.sub_info.topic_name})")
+
+    # ------------------------------------------------------------------ picks
+    def _init_picks(self, qos) -> None:
+        """The CameraInfo subscription (the latest message is kept), the pick publishers."""
+        from geometry_msgs.msg import PoseArray
+        from sensor_msgs.msg import CameraInfo
+        from visualization_msgs.msg import MarkerArray
+
+        from ..picks import PickConfig
+
+        self.pick_cfg = PickConfig(normal_radius=self.get_parameter("pick_normal_radius").value,
+                                   free_rise=self.get_parameter("pick_free_rise").value)
+        self.camera_info = None  # the latest CameraInfo message
+        self.sub_info = self.create_subscription(
+            CameraInfo, self._camera_info_topic(),
+            lambda m: setattr(self, "camera_info", m), qos)
+        self.pub_picks = self.create_publisher(PoseArray, "~/picks", 5)
+        self.pub_markers = self.create_publisher(MarkerArray, "~/markers", 5)
+        self.pick_counts = Counter()  # published, skipped:<reason>
+        self.pick_problem = ""  # why the last frame got no picks ('' = it got them)
+        self.last_picks = ""  # the last published pick order, for /diagnostics
+
+    def _camera_info_topic(self) -> str:
+        """camera_info beside the depth topic (as image_transport pairs them): when only the
+        depth topic is remapped, the camera_info of the same folder; a remap of
+        camera/depth/camera_info itself wins."""
+        info = self.resolve_topic_name(common.CAMERA_INFO_TOPIC)
+        if info != self.resolve_topic_name(common.CAMERA_INFO_TOPIC, only_expand=True):
+            return info  # remapped explicitly
+        return self.sub.topic_name.rsplit("/", 1)[0] + "/camera_info"
+
+    def _camera_matrix(self, shape: tuple[int, int]):
+        """K of the latest CameraInfo for a depth frame of `shape`; raises FrameError(reason,
+        why) when there is none, its size differs or its K is unusable."""
+        from ..picks import check_intrinsics
+
+        if self.camera_info is None:
+            raise FrameError("no_camera_info", f"no CameraInfo received on "
+                                               f"{self.sub_info.topic_name}: no picks")
+        w, h, K = conversions.camera_info_size_and_K(self.camera_info)
+        if (h, w) != tuple(shape):
+            raise FrameError("camera_info_size", f"CameraInfo on {self.sub_info.topic_name} is "
+                             f"{w}x{h} but the depth is {shape[1]}x{shape[0]}: no picks")
+        try:
+            return check_intrinsics(K)
+        except ValueError as e:
+            raise FrameError("camera_info_k", f"CameraInfo on {self.sub_info.topic_name}: {e}: "
+                             "no picks") from None
+
+    def _publish_picks(self, msg: Image, depth: np.ndarray, seg) -> None:
+        """Picks of a segmented frame on ~/picks and ~/markers, with the input's header. Any
+        problem (no or mismatched CameraInfo) is counted, shown in /diagnostics and logged
+        (throttled); the labels were published already."""
+        from ..picks import compute_picks, hidden_from_renders
+
+        if not self.get_parameter("publish_picks").value:
+            return
+        try:
+            K = self._camera_matrix(depth.shape)
+        except FrameError as e:
+            self.pick_counts[f"skipped:{e.reason}"] += 1
+            self.pick_problem = str(e)
+            self._warn_throttled(e.reason, str(e))
+            return
+        self.pick_problem = ""
+        if self.pub_picks.get_subscription_count() + self.pub_markers.get_subscription_count() == 0:
+            return
+        occluded = hidden_from_renders(seg.renders64, seg.labels64, self.p["tau"])
+        picks = compute_picks(depth, seg.labels, K, occluded, self.pick_cfg)
+        self.pub_picks.publish(conversions.picks_to_pose_array(picks, msg.header))
+        if self.pub_markers.get_subscription_count() > 0:
+            self.pub_markers.publish(conversions.picks_to_markers(picks, msg.header))
+        self.pick_counts["published"] += 1
+        self.last_picks = " ".join(
+            f"#{p.instance}{'' if p.free else '(under)'}@{p.position[2]:.3f}m" for p in picks)
+        self.get_logger().debug(f"picks: {self.last_picks or 'none'}")
+
+    def _warn_throttled(self, reason: str, message: str, period: float = 5.0) -> None:
+        key, now = ("warn", reason), time.monotonic()
+        if now - self._logged.get(key, -math.inf) >= period:
+            self._logged[key] = now
+            self.get_logger().warning(message)
 
     def _warm_up(self) -> None:
         """One inference on a synthetic input before subscribing, so that the first real frame
@@ -164,34 +234,13 @@ class Segmenter(Node):
 
     def _settings(self):
         """The model's test-time settings (`InferenceConfig`) as the parameters now set them."""
-        from ..params import SETTINGS, apply
-
-        return apply(self.model.inference, {name: self.p[name] for name in SETTINGS})
+        return settings.apply(self.model.inference, self.p)
 
     # ------------------------------------------------------------------ parameters
-    @staticmethod
-    def _descriptor(desc, read_only=False, float_range=None, int_range=None, type_=None):
-        pd = ParameterDescriptor(description=desc, read_only=read_only)
-        if type_ is not None:
-            pd.type = type_
-        if float_range:
-            pd.floating_point_range = [FloatingPointRange(
-                from_value=float(float_range[0]), to_value=float(float_range[1]), step=0.0)]
-        if int_range:
-            pd.integer_range = [IntegerRange(from_value=int_range[0], to_value=int_range[1],
-                                             step=1)]
-        return pd
+    _descriptor = staticmethod(common.descriptor)
 
     def _declare(self, specs: dict) -> None:
-        from rclpy.parameter import Parameter
-
-        for name, (default, desc) in specs.items():
-            if isinstance(default, list) and not default:  # [] has no type of its own
-                default = Parameter.Type(desc.type)
-            try:
-                self.declare_parameter(name, default, desc)
-            except Exception as e:  # out of range or wrong type on the command line
-                raise ConfigError(f"parameter {name}: {e}") from None
+        common.declare(self, specs)
 
     def _declare_startup(self) -> None:
         d = self._descriptor
@@ -206,14 +255,22 @@ class Segmenter(Node):
                                           float_range=(0.05, 60.0))),
             "latency_window": (1000, d("frames over which /diagnostics reports latency "
                                        "percentiles", read_only=True, int_range=(10, 1_000_000))),
+            "publish_picks": (True, d("publish ~/picks and ~/markers (computed only when "
+                                      "subscribed; needs CameraInfo)", read_only=True)),
+            "pick_free_rise": (0.003, d(
+                "metres: a neighbouring instance higher than this where the two meet lies on an "
+                "instance, which then is not free (picks: free ones first)", read_only=True,
+                float_range=(0.0, 0.1))),
+            "pick_normal_radius": (0.005, d(
+                "metres: the patch around a pick's centroid that its normal is fitted to",
+                read_only=True, float_range=(0.0005, 0.1))),
         })
 
     def _declare_runtime(self) -> None:
         d, prep, cfg = self._descriptor, self.model.prep_cfg, self.model.inference
         self._runtime_names = ["roi", "bin_polygon", "floor_depth", "min_height", "rim_band",
                                "rim_step", "tau",
-                               "refine_steps", "refine_hypotheses", "refine_keep",
-                               "smooth_iters", "smooth_full_res_iters", "encoder_precision",
+                               *(x.name for x in settings.exposed()),
                                "publish_masks", "publish_overlay", "publish_reconstruction",
                                "resolution_change_frames"]
         self._declare({
@@ -238,30 +295,6 @@ class Segmenter(Node):
                 "carrying labels beyond the bin region", float_range=(0.0001, 0.1))),
             "tau": (float(self.model.tau), d("render threshold in [-1, 1] (default: calibrated, "
                                              "stored in the model)", float_range=(-1.0, 1.0))),
-            "refine_steps": (int(cfg.refine_steps), d(
-                "test-time refinement of the poses per frame: Levenberg-Marquardt iterations "
-                "(default: the model's; each costs about 1.4 ms for one refined starting point, "
-                "0.6 ms a point with 8, on one CPU thread)", int_range=(0, 500))),
-            "refine_hypotheses": (int(cfg.hypotheses), d(
-                "starting points: the encoder's poses, those on the mirrored and transposed "
-                "inputs (up to 8), then jittered ones; the best-fitting is kept (default: the "
-                "model's)",
-                int_range=(1, 32))),
-            "refine_keep": (int(cfg.keep), d(
-                "how many of the starting points, the best-fitting first, are refined; 0 = all "
-                "(default: the model's; the refinement's time grows about in proportion)",
-                int_range=(0, 32))),
-            "smooth_iters": (int(cfg.smooth.iters), d(
-                "iterations of depth-aware label smoothing at the model's 64 x 64 (default: the "
-                "model's; 0 = off, also at full resolution)", int_range=(0, 200))),
-            "smooth_full_res_iters": (int(cfg.smooth.full_res_iters), d(
-                "then iterations at the input's resolution near instance boundaries (default: "
-                "the model's; 0 = off; 10 cost about 4-5 ms a 1280 x 720 frame on one CPU "
-                "thread)", int_range=(0, 200))),
-            "encoder_precision": (cfg.precision, d(
-                "the encoder's arithmetic: float32, bfloat16, or auto (bfloat16 where the CPU or "
-                "GPU computes it natively, e.g. AVX512-BF16: the encoder about 1.3-1.6x faster, "
-                "the same labels to 0.001 mIoU; else float32) (default: the model's)")),
             "publish_masks": (True, d("publish ~/masks")),
             "publish_overlay": (True, d("publish ~/overlay (computed only when subscribed)")),
             "publish_reconstruction": (True, d("publish ~/reconstruction (only when "
@@ -270,6 +303,12 @@ class Segmenter(Node):
                 "frames of one new resolution in a row after which the node adopts it (the "
                 "earlier ones are skipped)", int_range=(1, 10_000))),
         })
+        # the inference settings: one name each, as InferenceConfig fields and CLI flags
+        model_values = settings.values(cfg)
+        self._declare({x.name: (model_values[x.name], d(
+            x.doc + (f"; one of {', '.join(x.choices)}" if x.choices else "")
+            + " (default: the model's)", int_range=x.range if x.type is int else None))
+            for x in settings.exposed()})
 
     def _value(self, name: str):
         """A parameter's value; an array parameter left unset ([] by default) reads as []."""
@@ -283,11 +322,7 @@ class Segmenter(Node):
     def _apply(self, values: dict) -> None:
         """Validate a full parameter set and make it current (raises ConfigError)."""
         new = {**self.p, **values}
-        from ..segment import PRECISIONS
-
-        if new["encoder_precision"] not in PRECISIONS:
-            raise ConfigError(f"encoder_precision {new['encoder_precision']!r} invalid; valid: "
-                              + ", ".join(PRECISIONS))
+        settings.apply(self.model.inference, new)  # raises ValueError naming a bad setting
         roi = _parse_roi(new["roi"])
         polygon = _parse_polygon(new["bin_polygon"])
         floor = float(new["floor_depth"])
@@ -382,6 +417,12 @@ class Segmenter(Node):
         t4 = time.perf_counter()
         self._publish_extras(msg, depth, seg)
         self.conversion_ms.append((conv + time.perf_counter() - t4) * 1e3)
+        try:
+            self._publish_picks(msg, depth, seg)
+        except Exception as e:  # never die on a frame; the labels went out already
+            self.pick_counts["skipped:internal"] += 1
+            self.pick_problem = f"internal: {type(e).__name__}: {e}"
+            self._warn_throttled("pick_internal", f"picks failed: {self.pick_problem}")
 
     def _publish_extras(self, msg: Image, depth: np.ndarray, seg) -> None:
         n = self.model.model_cfg.n_instances
@@ -431,27 +472,33 @@ class Segmenter(Node):
             status.level = DiagnosticStatus.WARN
             status.message = f"{self.counts['skipped']} frames skipped; last: {self.last_error}"
         status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
-        arr = DiagnosticArray(status=[status])
+        arr = DiagnosticArray(status=[status, self._picks_status()])
         arr.header.stamp = self.get_clock().now().to_msg()
         self.pub_diag.publish(arr)
 
+    def _picks_status(self) -> DiagnosticStatus:
+        """The picks' own status: WARN with the reason while frames get no picks (no CameraInfo,
+        a size mismatch), else OK with the last pick order."""
+        status = DiagnosticStatus(name=f"{self.get_name()}: picks",
+                                  hardware_id=str(self.model_path))
+        values = {"camera_info_topic": self.sub_info.topic_name,
+                  "camera_info_received": str(self.camera_info is not None).lower(),
+                  "picks_published": str(self.pick_counts["published"]),
+                  "last_picks": self.last_picks}
+        for key in sorted(k for k in self.pick_counts if k.startswith("skipped:")):
+            values["picks_skipped_" + key.split(":", 1)[1]] = str(self.pick_counts[key])
+        if not self.get_parameter("publish_picks").value:
+            status.level, status.message = DiagnosticStatus.OK, "off (publish_picks false)"
+        elif self.pick_problem:
+            status.level, status.message = DiagnosticStatus.WARN, self.pick_problem
+        else:
+            status.level, status.message = DiagnosticStatus.OK, "picking"
+        status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
+        return status
+
 
 def main(args=None) -> int:
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = Segmenter()
-        rclpy.spin(node)
-        return 0
-    except (ConfigError, CheckpointError) as e:
-        print(f"segmenter: error: {e}", file=sys.stderr)
-        return 1
-    except (KeyboardInterrupt, ExternalShutdownException):
-        return 0
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    return common.run("segmenter", Segmenter, args, errors=(CheckpointError,))
 
 
 if __name__ == "__main__":
