@@ -48,6 +48,7 @@ class BagError(Exception):
 @dataclass
 class CameraInfo:
     """The parts of sensor_msgs/CameraInfo this package uses."""
+
     width: int
     height: int
     K: np.ndarray  # (3, 3)
@@ -223,6 +224,7 @@ class _TopicInfo:  # what list_topics and read_frames use of a rosbags TopicInfo
 @dataclass
 class _FileScan:
     """How one storage file read: `cut` when it ends before its writer finished it."""
+
     name: str
     cut: bool = False
     detail: str = ""
@@ -479,8 +481,8 @@ def _info_msg(store, header, info: CameraInfo):
 class BagWriter:
     """Write depth frames (+ camera info, + labels) to a new rosbag2 bag, atomically.
 
-        with BagWriter("out/bag", encoding="16UC1") as w:
-            w.write(stamp_ns, depth_m, labels=labels, camera_info=info)
+    with BagWriter("out/bag", encoding="16UC1") as w:
+        w.write(stamp_ns, depth_m, labels=labels, camera_info=info)
     """
 
     def __init__(self, path, encoding: str = "16UC1", storage: str = "mcap",

@@ -252,7 +252,7 @@ def spectral(heights: np.ndarray, fg: np.ndarray, n: int, seed: int = 0) -> np.n
 
 @_single_threaded
 def grabcut_kmeans(heights: np.ndarray, fg: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
-    """GrabCut (OpenCV) refines the foreground, then K-Means as in `kmeans` splits it.
+    """Grabcut (OpenCV) refines the foreground, then K-Means as in `kmeans` splits it.
 
     GrabCut starts from `fg`: probable foreground inside it, probable background in a 3-pixel
     ring around it, definite background beyond; 3 iterations, OpenCV's RNG seeded with `seed`.

@@ -211,7 +211,8 @@ def main(argv=None) -> int:
           f"{cfg.smooth.full_res_active} at full resolution, encoder in "
           f"{last.get('encoder_precision', cfg.encoder_precision)}"
           + (f" (params file {args.params_file})" if args.params_file else ""))
-    print(f"  frames: sent {len(sent)}, answered {len(got)} ({100 * len(got) / max(len(sent), 1):.1f} %),"
+    print(f"  frames: sent {len(sent)}, answered {len(got)} "
+          f"({100 * len(got) / max(len(sent), 1):.1f} %),"
           f" dropped {len(sent) - len(got)} (node received about {received}; skipped "
           f"{last.get('frames_skipped', '?')})")
     print(f"  node latency (received -> labels published): p50 {last.get('latency_p50_ms')} ms, "

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import settings
 from .bags import BagError
 from .checkpoint import CheckpointError
 
@@ -33,13 +34,29 @@ def _fractions(text: str) -> tuple[float, float, float]:
     return parts
 
 
+def _offset(text: str) -> tuple[float, float]:
+    try:
+        parts = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        parts = ()
+    if len(parts) != 2:
+        raise argparse.ArgumentTypeError(f"{text!r} is not two numbers like -0.15,0.08 "
+                                         "(fractions of the image width,height)")
+    return parts
+
+
 def _scene_config(args):
+    from dataclasses import replace
+
     from .sim.camera import get_camera
     from .sim.noise import get_noise
     from .sim.scene import SceneConfig
 
+    camera = get_camera(args.camera, args.width, args.height)
+    pose = {k: v for k, v in (("tilt", args.tilt), ("roll", args.roll),
+                              ("bin_offset", args.bin_offset)) if v is not None}
     return SceneConfig(object=args.object, instances=args.instances,
-                       camera=get_camera(args.camera, args.width, args.height),
+                       camera=replace(camera, **pose) if pose else camera,
                        noise=get_noise(args.noise))
 
 
@@ -51,11 +68,17 @@ def _add_scene_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--object", default="cylinder", choices=list(OBJECTS))
     p.add_argument("--instances", type=int, default=5, help="objects per bin (default 5)")
     p.add_argument("--camera", default="default", choices=list(PRESETS),
-                   help="camera preset: default = 224x224, realsense_d435 = 848x480")
+                   help="camera preset: default = 224x224, realsense_d435 = 848x480, "
+                        "realsense_d435_tilted = the same tilted 3 degrees, bin off-centre")
     p.add_argument("--width", type=int, help="override the preset's image width")
     p.add_argument("--height", type=int, help="override the preset's image height")
     p.add_argument("--noise", default="none", choices=list(NOISE_PRESETS),
                    help="sensor noise model (default none)")
+    p.add_argument("--tilt", type=float, help="override the preset's camera tilt, degrees")
+    p.add_argument("--roll", type=float, help="override the preset's camera roll, degrees")
+    p.add_argument("--bin-offset", type=_offset,
+                   help="override where the bin's centre appears: fractions of the image "
+                        "width,height from the principal point, e.g. -0.15,0.08")
 
 
 # ----------------------------------------------------------------------------- commands
@@ -184,15 +207,15 @@ def cmd_distill(args) -> int:
 def cmd_eval(args) -> int:
     from . import data as data_mod
     from . import evaluate
-    from .checkpoint import load_for_inference
+    from .segment import Segmenter
 
     import torch
 
     if args.threads < 1:
         raise ValueError(f"--threads {args.threads} invalid; valid: >= 1")
     torch.set_num_threads(args.threads)
-    seg = load_for_inference(args.model, device=args.device)
-    seg.inference = _settings(args, seg.inference)
+    seg = Segmenter.from_checkpoint(args.model, device=args.device)
+    seg.inference = settings.resolve(seg.inference, args)
     n = seg.model_cfg.n_instances
     if args.data:
         d = data_mod.load_sim_split(args.data, args.split, seg.prep_cfg, limit=args.frames)
@@ -213,30 +236,26 @@ def cmd_eval(args) -> int:
     evaluate.qualitative_png(out / "qualitative.png", d, results)
     print(f"{source}: {summary['frames']} frames, {summary['hard_frames']} hard "
           f"({summary['hard_rule']}); model {args.model}, tau {seg.tau:.2f}, "
-          f"{seg.inference.refine_steps} refinement steps x {seg.inference.hypotheses} starts"
-          + (f" (best {seg.inference.keep} refined)" if seg.inference.keep else "")
+          f"{seg.inference.refine_steps} refinement steps x {seg.inference.refine_hypotheses} starts"
+          + (f" (best {seg.inference.refine_keep} refined)" if seg.inference.refine_keep else "")
           + f", {seg.inference.smooth.iters} smoothing iterations")
     print(evaluate.format_table(summary))
     print(f"wrote {out / 'results.json'} and {out / 'qualitative.png'}")
     return 0
 
 
-def _settings(args, base):
-    """InferenceConfig: `base`, then the --profile parameters file, then the explicit flags."""
-    from .params import apply, from_flags, read_params_file
-
-    params = read_params_file(args.profile) if args.profile else {}
-    return apply(base, {**params, **from_flags(args)})  # validates, naming the setting
-
-
 def cmd_export(args) -> int:
     from .evaluate import format_table
     from .modelcard import export_model
-    from .params import apply, read_params_file
     from .segment import InferenceConfig
 
-    inference = _settings(args, InferenceConfig())
-    also = {Path(f).stem: apply(InferenceConfig(), read_params_file(f))
+    if args.bag or args.label_free:
+        return _export_label_free(args)
+    for flag in ("topic", "labels_topic"):
+        if getattr(args, flag):
+            raise ValueError(f"--{flag.replace('_', '-')} goes with --bag, not --data")
+    inference = settings.resolve(InferenceConfig(), args)
+    also = {Path(f).stem: settings.apply(InferenceConfig(), settings.read_params_file(f))
             for f in args.also_profile or []}
     card = export_model(args.checkpoint, args.data, args.name, args.out or Path("models") / args.name,
                         inference=inference, half=not args.no_half, frames=args.frames,
@@ -244,6 +263,66 @@ def cmd_export(args) -> int:
     print(f"exported {args.name}: tau {card['tau']:.3f}, {card['precision']}, refine steps "
           f"{card['refine_steps']} x {card['hypotheses']} hypotheses; test split:")
     print(format_table(card["test"]))
+    return 0
+
+
+def _export_label_free(args) -> int:
+    """`inseggan export --bag` (or --data --label-free): tau and the card without labels."""
+    from .checkpoint import load
+    from .evaluate import format_table
+    from .modelcard import export_from_bag, export_from_dataset
+    from .segment import InferenceConfig
+    from .selfcheck import format_measures
+
+    for flag in ("also_profile", "sample_bag"):
+        if getattr(args, flag):
+            raise ValueError(f"--{flag.replace('_', '-')} needs --data (labelled), not a "
+                             "label-free export")
+    if args.frames < 1:
+        raise ValueError(f"--frames {args.frames} invalid; valid: >= 1")
+    # the checkpoint's own settings (an exported model.pt has them), then the flags
+    inference = settings.resolve(InferenceConfig.from_dict(load(args.checkpoint).get("inference", {})),
+                                 args)
+    out = args.out or Path("models") / args.name
+    if args.bag:
+        card = export_from_bag(args.checkpoint, args.bag, args.name, out, args.topic,
+                               args.labels_topic, args.held_out, args.frames, inference)
+    else:
+        if args.topic or args.labels_topic:
+            raise ValueError("--topic and --labels-topic go with --bag, not --data")
+        card = export_from_dataset(args.checkpoint, args.data, args.name, out, args.frames,
+                                   inference)
+    print(f"exported {args.name} to {out}: tau {card['tau']:.3f} (from the frames, no labels); "
+          f"on {card['source']['held_out_rule']}:")
+    print(format_measures(card["measures"]))
+    if card["labelled"]:
+        print(format_table(card["labelled"]))
+    return 0
+
+
+def cmd_check(args) -> int:
+    """Segment a few frames of a bag: a PNG sheet and the label-free measures."""
+    import torch
+
+    from . import selfcheck
+    from .paths import resolve_bag, resolve_model
+    from .segment import Segmenter
+
+    if args.frames < 1:
+        raise ValueError(f"--frames {args.frames} invalid; valid: >= 1")
+    torch.set_num_threads(1)  # as the node runs by default
+    model = Path(args.model).expanduser()
+    model = model / "model.pt" if model.is_dir() else resolve_model(str(args.model), "--model")
+    seg = Segmenter.from_checkpoint(model, device="cpu")
+    seg.inference = settings.resolve(seg.inference, args)
+    bag = resolve_bag(str(args.bag), "--bag")
+    frames = selfcheck.load_bag_frames(bag, seg.prep_cfg, args.topic, count=args.frames)
+    out = selfcheck.segment_frames(seg, frames["x"], frames["fg"])
+    m = selfcheck.measure(seg, frames["x"], frames["fg"], out)
+    selfcheck.sheet_png(args.out, frames["x"], out, frames=range(len(frames["x"])))
+    print(f"{model} on {bag} (frames {', '.join(map(str, frames['index']))}):")
+    print(selfcheck.format_measures(m))
+    print(f"wrote {args.out}: input | reconstruction | labels | each instance rendered alone")
     return 0
 
 
@@ -305,22 +384,6 @@ def cmd_bag_info(args) -> int:
     return 0
 
 
-def _add_settings_args(p: argparse.ArgumentParser, default: str) -> None:
-    """Test-time settings: a node parameters file and flags that override it."""
-    p.add_argument("--profile", type=Path,
-                   help="segmenter parameters file, e.g. config/realtime.yaml " + default)
-    p.add_argument("--refine-steps", type=int, help="Levenberg-Marquardt iterations")
-    p.add_argument("--hypotheses", type=int, help="starting points of the refinement")
-    p.add_argument("--keep", type=int, help="starting points refined, the best-fitting first "
-                                            "(0 = all)")
-    p.add_argument("--smooth-iters", type=int, help="label-smoothing iterations at 64 x 64")
-    p.add_argument("--full-res-smooth-iters", type=int,
-                   help="label-smoothing iterations at the input's resolution")
-    p.add_argument("--precision", choices=("float32", "bfloat16", "auto"),
-                   help="the encoder's arithmetic (auto: bfloat16 where the CPU/GPU computes it "
-                        "natively)")
-
-
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="inseggan", description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -353,19 +416,44 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_simulate_bag)
 
     p = sub.add_parser("export", help="ship a trained model: models/<name>/ with a model card")
-    p.add_argument("--checkpoint", type=Path, required=True)
-    p.add_argument("--data", type=Path, required=True, help="its simulated data set (val, test)")
+    p.add_argument("--checkpoint", type=Path, required=True,
+                   help="training checkpoint (best.pt) or an exported model.pt")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--data", type=Path, help="its simulated data set (val, test)")
+    src.add_argument("--bag", help="a recording of the part, no labels needed: tau from its "
+                                   "frames, label-free measures on its last 20 %% (a path or a "
+                                   "shipped bag's name)")
+    p.add_argument("--label-free", action="store_true",
+                   help="with --data: calibrate tau without the labels (val split) and report "
+                        "the label-free measures on the test split")
+    p.add_argument("--topic", help="with --bag: depth topic (default: auto)")
+    p.add_argument("--labels-topic", help="with --bag: a label Image topic in the bag (e.g. "
+                                          "/camera/depth/instance_labels): the card adds mIoU")
+    p.add_argument("--held-out", type=float, default=0.2,
+                   help="with --bag: the fraction of last frames held out (default 0.2)")
     p.add_argument("--name", required=True)
     p.add_argument("--out", type=Path, help="default: models/<name>")
-    _add_settings_args(p, "(default: none)")
+    settings.add_flags(p, "(default: none)")
     p.add_argument("--also-profile", type=Path, action="append",
                    help="parameters file of other settings to measure on the test split too "
                         "(a row inseggan_<file stem>; repeatable)")
     p.add_argument("--no-half", action="store_true", help="keep float32 weights")
-    p.add_argument("--frames", type=int, default=200)
+    p.add_argument("--frames", type=int, default=200,
+                   help="frames per split at most (with --bag: calibration and held-out)")
     p.add_argument("--config-name", help="the named training config, for the card")
     p.add_argument("--sample-bag", help="name of a shipped bag of this object (tests use it)")
     p.set_defaults(func=cmd_export)
+
+    p = sub.add_parser("check", help="segment a few frames of a bag: PNG sheet and label-free "
+                                     "measures")
+    p.add_argument("--model", required=True,
+                   help="model folder, model.pt or a shipped model's name")
+    p.add_argument("--bag", required=True, help="bag path or a shipped bag's name")
+    p.add_argument("--topic", help="depth topic (default: auto)")
+    p.add_argument("--frames", type=int, default=6, help="frames spread over the bag (6)")
+    settings.add_flags(p, "(default: the model's)")
+    p.add_argument("--out", type=Path, default=Path("check.png"), help="PNG sheet (check.png)")
+    p.set_defaults(func=cmd_check)
 
     p = sub.add_parser("bench-sim", help="simulator throughput (scenes/s)")
     _add_scene_args(p)
@@ -455,7 +543,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--topic")
     p.add_argument("--frames", type=int, default=200)
     p.add_argument("--methods", help="comma-separated baselines (default: all)")
-    _add_settings_args(p, "(default: the model's)")
+    settings.add_flags(p, "(default: the model's)")
     p.add_argument("--device", default="auto")
     p.add_argument("--threads", type=int, default=1,
                    help="CPU threads for inference (default 1, as the model cards and the node; "

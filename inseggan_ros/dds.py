@@ -7,7 +7,8 @@ shared-memory transport a 32 MB segment (UDP stays for the rest): 601 of 601 arr
 same node latency. Fast DDS reads a profile file named by an environment variable, so every
 process of the pipeline (camera driver or bin_replay, segmenter) must start with it set:
 
-    export FASTRTPS_DEFAULT_PROFILES_FILE=$(ros2 pkg prefix inseggan_ros)/share/inseggan_ros/config/fastdds_large_frames.xml
+    share=$(ros2 pkg prefix inseggan_ros)/share/inseggan_ros
+    export FASTRTPS_DEFAULT_PROFILES_FILE=$share/config/fastdds_large_frames.xml
 
 The demo and the node benchmark set it for the processes they start, unless it is set already.
 Discovery is unchanged: with ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST no multicast group is

@@ -73,7 +73,8 @@ def main(argv=None) -> int:
                              keep(depth_by, conversions.depth_to_metres), qos_profile_sensor_data)
     node.create_subscription(Image, "camera/depth/instance_labels",
                              keep(gt_by, conversions.image_to_numpy), qos_profile_sensor_data)
-    node.create_subscription(Image, "segmenter/labels", keep(seg_by, conversions.image_to_numpy), 10)
+    node.create_subscription(Image, "segmenter/labels",
+                             keep(seg_by, conversions.image_to_numpy), 10)
     model = ["-p", f"model_path:={args.model}"] if args.model else []
     segmenter = subprocess.Popen(
         [_executable("segmenter"), "--ros-args", *model], stderr=subprocess.PIPE, text=True)
@@ -96,7 +97,8 @@ def main(argv=None) -> int:
     try:
         while len(done) < args.frames and time.monotonic() - t0 < args.timeout:
             rclpy.spin_once(node, timeout_sec=0.05)
-            for stamp in sorted(s for s in seg_by if s not in done and s in depth_by and s in gt_by):
+            for stamp in sorted(s for s in seg_by
+                                if s not in done and s in depth_by and s in gt_by):
                 arrival, labels = seg_by[stamp]
                 depth, gt = depth_by[stamp][1], gt_by[stamp][1]
                 ours, km = miou(labels, gt), miou(kmeans(-depth, gt > 0, int(gt.max())), gt)
@@ -108,7 +110,7 @@ def main(argv=None) -> int:
                 if len(done) >= args.frames:
                     break
             if segmenter.poll() is not None or (replay.poll() is not None and
-                                                  time.monotonic() - t0 > args.timeout / 2):
+                                                time.monotonic() - t0 > args.timeout / 2):
                 break
     finally:
         _stop(replay)

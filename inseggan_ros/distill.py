@@ -186,7 +186,8 @@ def plot_curves(history: list, path: Path) -> None:
                                  ("validation, no refinement", "val", ("miou", "recon_l1"))])
 
 
-def distill(source, train_x: np.ndarray, val: dict | None, out, cfg: DistillConfig = DistillConfig(),
+def distill(source, train_x: np.ndarray, val: dict | None, out,
+            cfg: DistillConfig = DistillConfig(),
             resume: bool = False, progress: bool = True) -> dict:
     """Fine-tune the encoder of training checkpoint `source` on `train_x` ((N, 1, 64, 64)
     prepared frames; the first `cfg.frames` are used). -> summary (also out/summary.json)."""
@@ -217,7 +218,8 @@ def distill(source, train_x: np.ndarray, val: dict | None, out, cfg: DistillConf
         E.load_state_dict(saved["encoder"])
         opt.load_state_dict(last["optimizer"])
         gen.set_state(last["generator"])
-        it, best, history, before = last["iteration"], last["best"], last["history"], last["seconds"]
+        it, best, history, before = (last["iteration"], last["best"], last["history"],
+                                     last["seconds"])
     start = time.monotonic()
 
     def save(path: Path) -> None:

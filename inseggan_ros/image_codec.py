@@ -31,7 +31,8 @@ def _dtype_channels(encoding: str) -> tuple[np.dtype, int]:
         return ENCODINGS[encoding]
     if encoding.startswith("8UC") and encoding[3:].isdigit() and 1 <= int(encoding[3:]) <= 255:
         return np.dtype(np.uint8), int(encoding[3:])
-    raise ImageFormatError(f"unsupported encoding {encoding!r}; valid: {', '.join(ENCODINGS)}, 8UC<n>")
+    raise ImageFormatError(f"unsupported encoding {encoding!r}; "
+                           f"valid: {', '.join(ENCODINGS)}, 8UC<n>")
 
 
 def decode(height: int, width: int, encoding: str, is_bigendian: int, step: int,
@@ -43,7 +44,8 @@ def decode(height: int, width: int, encoding: str, is_bigendian: int, step: int,
     if height <= 0 or width <= 0:
         raise ImageFormatError(f"empty image {width}x{height}; width and height must be > 0")
     if height > MAX_SIDE or width > MAX_SIDE:
-        raise ImageFormatError(f"image {width}x{height} too large; valid: up to {MAX_SIDE} per side")
+        raise ImageFormatError(f"image {width}x{height} too large; "
+                               f"valid: up to {MAX_SIDE} per side")
     row = width * channels * dtype.itemsize
     if step < row:
         raise ImageFormatError(f"step {step} < width*bytes per pixel = {row} for {width}x{height} "
@@ -51,7 +53,8 @@ def decode(height: int, width: int, encoding: str, is_bigendian: int, step: int,
     buf = (np.asarray(data).reshape(-1).view(np.uint8) if isinstance(data, np.ndarray)
            else np.frombuffer(data, np.uint8))  # bytes, array.array('B'), memoryview
     if buf.size != step * height:
-        raise ImageFormatError(f"data has {buf.size} bytes, expected step*height = {step}*{height} = "
+        raise ImageFormatError(f"data has {buf.size} bytes, "
+                               f"expected step*height = {step}*{height} = "
                                f"{step * height} for {width}x{height} {encoding}")
     rows = np.ascontiguousarray(buf.reshape(height, step)[:, :row])
     order = ">" if is_bigendian and dtype.itemsize > 1 else "<"
@@ -74,7 +77,8 @@ def encode_array(array: np.ndarray, encoding: str) -> tuple[int, np.ndarray]:
         raise ImageFormatError(f"array of shape {a.shape} does not fit encoding {encoding!r} "
                                f"({channels} channel(s))")
     if a.dtype != dtype:
-        raise ImageFormatError(f"array dtype {a.dtype} does not fit encoding {encoding!r} ({dtype})")
+        raise ImageFormatError(f"array dtype {a.dtype} does not fit encoding {encoding!r} "
+                               f"({dtype})")
     a = np.ascontiguousarray(a, dtype.newbyteorder("<"))
     return a.shape[1] * channels * dtype.itemsize, a
 
@@ -87,15 +91,17 @@ def depth_to_metres(raw: np.ndarray, encoding: str) -> np.ndarray:
         out = raw.astype(np.float32, copy=True)
         out[~np.isfinite(out) | (out < 0)] = 0.0
         return out
-    raise ImageFormatError(f"unsupported depth encoding {encoding!r}; valid: {', '.join(DEPTH_ENCODINGS)}")
+    raise ImageFormatError(f"unsupported depth encoding {encoding!r}; "
+                           f"valid: {', '.join(DEPTH_ENCODINGS)}")
 
 
 def metres_to_depth(depth_m: np.ndarray, encoding: str) -> np.ndarray:
-    """float metres -> raw depth of the given encoding (0 = no reading)."""
+    """Float metres -> raw depth of the given encoding (0 = no reading)."""
     d = np.asarray(depth_m, np.float32)
     d = np.where(np.isfinite(d) & (d > 0), d, 0.0)
     if encoding in ("16UC1", "mono16"):
         return np.clip(np.round(d * 1000.0), 0, 65535).astype(np.uint16)
     if encoding == "32FC1":
         return d.astype(np.float32)
-    raise ImageFormatError(f"unsupported depth encoding {encoding!r}; valid: {', '.join(DEPTH_ENCODINGS)}")
+    raise ImageFormatError(f"unsupported depth encoding {encoding!r}; "
+                           f"valid: {', '.join(DEPTH_ENCODINGS)}")

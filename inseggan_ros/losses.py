@@ -48,7 +48,8 @@ def greedy_plan(cost: torch.Tensor) -> torch.Tensor:
 
 
 def sinkhorn_plan(cost: torch.Tensor, epsilon: float = 0.02, iterations: int = 100) -> torch.Tensor:
-    """Entropic OT between uniform marginals; returned scaled so rows sum to 1 (like a permutation)."""
+    """Entropic OT between uniform marginals; returned scaled so rows sum to 1
+    (like a permutation)."""
     c = cost.detach().float()
     c = c / c.amax(dim=(1, 2), keepdim=True).clamp_min(1e-8)
     log_k = -c / epsilon
@@ -63,7 +64,8 @@ def sinkhorn_plan(cost: torch.Tensor, epsilon: float = 0.02, iterations: int = 1
     return plan.to(cost)
 
 
-def alignment_loss(z: torch.Tensor, z_hat: torch.Tensor, matching: str = "hungarian") -> torch.Tensor:
+def alignment_loss(z: torch.Tensor, z_hat: torch.Tensor,
+                   matching: str = "hungarian") -> torch.Tensor:
     """L_a: mean squared error between the sampled codes and the best-matched encoded codes."""
     cost = pairwise_cost(z, z_hat)
     if matching == "hungarian":

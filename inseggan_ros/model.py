@@ -28,7 +28,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 
-RENDERERS = ("learned", "projection", "spheres")
+RENDERERS = ("learned", "projection", "spheres", "convex")
 
 
 @dataclass(frozen=True)
@@ -54,6 +54,9 @@ class ModelConfig:
     height_gain: float = 1.8  # bin-crop width / max_height: template z units -> image heights
     floor_contact: bool = False  # "spheres": an instance reaching below the floor is lifted
     # until its lowest point touches it (objects lie on the floor or on each other)
+    pieces: int = 4  # "convex": convex pieces in the template's union
+    walls: int = 4  # "convex": side planes of each piece (besides its top and bottom): 4 make
+    # a box, and with each piece's own orientation and tilts a nut's sectors; 8 an octagon
 
     def __post_init__(self):
         if self.image_size != 64:
@@ -81,6 +84,14 @@ class ModelConfig:
             raise ValueError(f"radius_profile {self.radius_profile!r} invalid; valid: free, monotone")
         if not 1 <= self.spheres <= 256:
             raise ValueError(f"spheres must be in 1..256, got {self.spheres}")
+        if not 1 <= self.pieces <= 16:
+            raise ValueError(f"pieces must be in 1..16, got {self.pieces}")
+        if self.walls < 4 or self.walls % 4:
+            raise ValueError(f"walls must be a multiple of 4 and >= 4 (a box needs 4), got "
+                             f"{self.walls}")
+        if self.renderer == "convex" and self.floor_contact:
+            raise ValueError("floor_contact is implemented for the spheres renderer only; "
+                             "the convex renderer's poses carry the height themselves")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -417,9 +428,152 @@ class SphereGenerator(Generator):
         return (x, None) if return_features else x
 
 
+CONVEX_MIN_EXTENT = 0.03  # image half-widths (about a pixel): every piece holds a ball this big
+CONVEX_MAX_TILT = 0.6  # a normal leans at most asin(0.6) = 37 degrees from its prism direction
+
+
+def _softplus_inverse(y: torch.Tensor) -> torch.Tensor:
+    return y + torch.log(-torch.expm1(-y))
+
+
+class ConvexGenerator(Generator):
+    """A template for any rigid part: a union of K convex pieces, each the intersection of a
+    top, a bottom and `walls` side half-spaces, with the exact closed-form height map of
+    `template.height_map` (smooth for gradients), pieces and instances z-buffered by max.
+
+    Flat faces and sharp edges (a box), a hexagonal prism, pieces around a through hole (a
+    nut's sectors), a head on a shaft (a bolt), a flange (a pin), tapers (cone, stopper).
+    Parameters per piece (all in `template_parameters`, none of which can make it degenerate):
+      * `centre` (3) and `orientation` (3, axis-angle): where the piece's prism frame lies;
+      * `tilt` (P, 3): each normal is its prism direction (top, bottom, walls evenly around z)
+        plus a deviation of norm < CONVEX_MAX_TILT, normalised; with the prism directions
+        covering the sphere to within 47 degrees, every piece stays bounded;
+      * `extent` (P): offset of each plane from the centre, CONVEX_MIN_EXTENT + softplus, so
+        a piece always holds a ball of that radius around its centre, plus whatever it takes
+        to also hold the previous piece's centre (that ball too): piece k overlaps piece k-1,
+        so the union is one connected body by construction (free templates split into two
+        blobs: docs/experiments.md).
+    It starts as one box (`init_box`, `init_from_data`: of the size the training frames
+    suggest), every piece a copy of it with a little jitter, so each piece wins some of the
+    box's faces and gets gradient. Units and heights as `SphereGenerator`. Poses are full 3D
+    rotations (axis-angle) and translations: what the pose decoder outputs.
+    """
+
+    template_parameters = ("centre", "orientation", "tilt", "extent")
+
+    def __init__(self, cfg: ModelConfig):
+        """The pose decoder as the others', the template as one default box (`init_box`)."""
+        from .template import prism_normals
+
+        nn.Module.__init__(self)
+        self.cfg = cfg
+        self.pose = pose_decoder(cfg.latent_dim)
+        init_weights(self)
+        self._spread_poses()
+        K, P = cfg.pieces, cfg.walls + 2
+        self.register_buffer("base", prism_normals(cfg.walls), persistent=False)  # (P, 3)
+        self.centre = nn.Parameter(torch.zeros(K, 3))
+        self.orientation = nn.Parameter(torch.zeros(K, 3))
+        self.tilt = nn.Parameter(torch.zeros(K, P, 3))
+        self.extent = nn.Parameter(torch.zeros(K, P))
+        self.init_box((0.25, 0.15, 0.1))
+        size = cfg.image_size
+        r = (torch.arange(size) + 0.5) / size * 2 - 1
+        self.register_buffer("px", r.view(1, 1, 1, size), persistent=False)
+        self.register_buffer("py", r.view(1, 1, size, 1), persistent=False)
+
+    pixel_grid = SphereGenerator.pixel_grid
+
+    @torch.no_grad()
+    def init_box(self, half: tuple[float, float, float], jitter: float = 0.01) -> None:
+        """Every piece: the box of half-extents `half` (image half-widths) standing on the floor
+        (its bottom at height 0 when the pose's height is 0), offsets jittered by `jitter`."""
+        K, P = self.extent.shape
+        a, b, c = (float(v) for v in half)
+        if min(a, b, c) <= CONVEX_MIN_EXTENT:
+            raise ValueError(f"box half-extents {half} invalid; valid: each > {CONVEX_MIN_EXTENT}")
+        self.centre.copy_(torch.tensor([0.0, 0.0, c]).expand(K, 3))
+        self.orientation.zero_()
+        self.tilt.zero_()
+        support = self.base.abs() @ torch.tensor([a, b, c])  # (P,): the box's support function
+        noise = torch.randn(K, P, generator=torch.Generator().manual_seed(0)) * jitter
+        noise[0] = 0
+        self.extent.copy_(_softplus_inverse((support - CONVEX_MIN_EXTENT + noise).clamp_min(1e-3)))
+
+    @torch.no_grad()
+    def init_from_data(self, x, n_instances: int) -> tuple[float, float, float]:
+        """Start as the box the training frames suggest: (N, 1, H, W) model inputs -> a square
+        footprint of the mean visible area per instance, and as its thickness the lower quartile
+        of the foreground heights (parts lying flat on the floor; the median counts parts
+        resting on others). -> the half-extents used."""
+        x = torch.as_tensor(x, dtype=torch.float32)
+        fg = x > -1 + 1e-4
+        if not fg.any():
+            raise ValueError("init_from_data: no foreground pixels in the training frames")
+        area = float(fg.float().mean()) * 4 / n_instances  # the image spans 2 x 2 units
+        top = float(torch.quantile((x[fg] + 1) / self.cfg.height_gain, 0.25))
+        side = max(area ** 0.5 / 2, 2 * CONVEX_MIN_EXTENT)
+        half = (side, side, max(top / 2, 2 * CONVEX_MIN_EXTENT))
+        self.init_box(half)
+        return half
+
+    def halfspaces(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """-> the template in its own frame: (K, P, 3) unit normals, (K, P) offsets."""
+        t = self.tilt
+        n = self.base + CONVEX_MAX_TILT * t / torch.sqrt(1 + (t ** 2).sum(-1, keepdim=True))
+        n = n / n.norm(dim=-1, keepdim=True)
+        n = torch.einsum("kij,kpj->kpi", rodrigues(self.orientation), n)
+        prev = torch.cat([self.centre[:1], self.centre[:-1]])  # piece k also holds centre k-1
+        reach = F.relu((n * (prev - self.centre)[:, None]).sum(-1))
+        d = reach + CONVEX_MIN_EXTENT + F.softplus(self.extent)
+        return n, d + (n * self.centre[:, None]).sum(-1)
+
+    def template_spread(self) -> torch.Tensor:
+        """Mean squared distance of the piece centres from their mean (a compactness prior)."""
+        return ((self.centre - self.centre.mean(0)) ** 2).sum(1).mean()
+
+    def alignment_features(self, z: torch.Tensor) -> torch.Tensor:
+        """The pose as a render shows it: translation (3) and each axis of the rotation up to
+        sign (the 6 distinct entries of c c^T for each column c of R: 18), so that the 180
+        degree turns of a box about its axes, which render the same, compare equal."""
+        B, n, d = z.shape
+        p = self.pose(z.reshape(B * n, d))
+        cols = rodrigues(p[:, :3]).transpose(1, 2)  # (M, 3 columns, 3)
+        i, j = torch.triu_indices(3, 3)
+        outer = (cols[..., :, None] * cols[..., None, :])[..., i, j]  # (M, 3, 6)
+        return torch.cat([p[:, 3:], outer.flatten(1)], 1).reshape(B, n, 21)
+
+    def render_instances(self, z: torch.Tensor, size: int | None = None) -> torch.Tensor:
+        """(B, n, d) codes -> (B, n, size, size) single-instance renders (default image_size)."""
+        B, n, d = z.shape
+        return self.render_poses(self.pose(z.reshape(B * n, d)).reshape(B, n, 6), size)
+
+    def render_poses(self, pose: torch.Tensor, size: int | None = None,
+                     template: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+        """(B, n, 6) poses (axis-angle rotation, translation) -> (B, n, size, size) renders.
+        `template`: `halfspaces()` computed beforehand (it does not change while poses move)."""
+        from .template import height_map, pose_planes
+
+        B, n = pose.shape[:2]
+        p = pose.reshape(B * n, 6)
+        normals, offsets = self.halfspaces() if template is None else template
+        nw, dw = pose_planes(normals, offsets, rodrigues(p[:, :3]), p[:, 3:])
+        px, py = self.pixel_grid(size)
+        px, py = px.reshape(-1), py.reshape(-1)
+        h = height_map(nw, dw, px, py, temperature=2.0 / px.numel())  # about a pixel
+        x = (h * (self.cfg.height_gain / 2)).clamp(0, 1) * 2 - 1
+        return x.reshape(B, n, *x.shape[1:])
+
+    def forward(self, z: torch.Tensor, return_features: bool = False):
+        """(B, n, d) codes -> (B, 1, 64, 64) z-buffered composite (no features to average)."""
+        x = self.zbuffer(self.render_instances(z))
+        return (x, None) if return_features else x
+
+
 def make_generator(cfg: ModelConfig) -> Generator:
-    return {"projection": ProjectionGenerator, "spheres": SphereGenerator}.get(
-        cfg.renderer, Generator)(cfg)
+    """The generator that `cfg.renderer` names."""
+    return {"projection": ProjectionGenerator, "spheres": SphereGenerator,
+            "convex": ConvexGenerator}.get(cfg.renderer, Generator)(cfg)
 
 
 def _trunk(nf: int, sn: bool = False) -> list[nn.Module]:

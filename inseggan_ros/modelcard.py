@@ -10,6 +10,13 @@
    frames and on the hard subset, time per frame; a qualitative PNG;
 4. card.json (machine-readable: the test checks it against the checkpoint) and README.md.
 Everything is written to a temporary folder first and moved into place at the end.
+
+Without labels (a recording of the user's own part) `export_from_bag` does the same from the
+frames alone (`selfcheck`): tau calibrated on the bag's first frames without labels, the card's
+label-free measures (reconstruction error, coverage, instance count, time) on its last 20 %,
+and mIoU against K-Means and Felzenszwalb only where a label topic is named:
+
+    inseggan export --checkpoint runs/mine/best.pt --bag my_recording --name my_part
 """
 from __future__ import annotations
 
@@ -46,22 +53,22 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, inference=None,
     from . import checkpoint as ckpt
     from . import data as data_mod
     from . import evaluate
-    from .segment import InferenceConfig, calibrate_tau, infer
+    from .segment import InferenceConfig, Segmenter, calibrate_tau, infer
 
     torch.set_num_threads(1)  # as the card says, and as the node runs by default: the pick
     # among refinement starts can tip with another thread count's rounding
     state = ckpt.load(checkpoint_path)
-    seg = ckpt.load_for_inference(checkpoint_path, device="cpu")
+    seg = Segmenter.from_checkpoint(checkpoint_path, device="cpu")
     seg.inference = inference = inference or InferenceConfig()
     val = data_mod.load_sim_split(data_root, "val", seg.prep_cfg, limit=frames)
     test = data_mod.load_sim_split(data_root, "test", seg.prep_cfg, limit=frames)
 
     # 1. tau with the shipped inference settings (on the z-buffered labels, before smoothing)
     x = torch.from_numpy(val["x"])
-    renders = torch.cat([infer(seg.G, seg.encoder(inference.precision), x[i:i + 50],
+    renders = torch.cat([infer(seg.G, seg.encoder(inference.encoder_precision), x[i:i + 50],
                                refine_steps=inference.refine_steps,
-                               hypotheses=inference.hypotheses,
-                               keep=inference.keep)["renders"]
+                               hypotheses=inference.refine_hypotheses,
+                               keep=inference.refine_keep)["renders"]
                          for i in range(0, len(x), 50)])
     tau, scores = calibrate_tau(renders, torch.from_numpy(val["fg"]), val["labels"])
     seg.tau = tau
@@ -114,12 +121,12 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, inference=None,
         "train_config": tcfg, "iterations": state["iteration"],
         "wall_minutes": round(state["elapsed_seconds"] / 60, 1),
         "hardware": f"{platform.machine()} CPU, {os.cpu_count()} cores (torch threads: 1)",
-        "tau": tau, "refine_steps": inference.refine_steps, "hypotheses": inference.hypotheses,
-        "smooth_iters": inference.smooth.iters, "keep": inference.keep,
+        "tau": tau, "refine_steps": inference.refine_steps, "hypotheses": inference.refine_hypotheses,
+        "smooth_iters": inference.smooth.iters, "keep": inference.refine_keep,
         "full_res_smooth_iters": inference.smooth.full_res_active,
         "inference": inference.to_dict(),
         # what "auto" meant here: the model tests measure in it, whatever their CPU computes natively
-        "encoder_precision": seg.resolve_precision(inference.precision),
+        "encoder_precision": seg.resolve_precision(inference.encoder_precision),
         "also": {k: v.to_dict() for k, v in (also or {}).items()},
         "distillation": _distill_record(state),
         "precision": precision,
@@ -127,21 +134,202 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, inference=None,
         "val_miou": {"float32": val_full, "float16": val_half},
         "test": summary,
     }
+
+    def write(tmp: Path) -> None:
+        ckpt.save(tmp / "model.pt", keep)
+        evaluate.qualitative_png(tmp / "qualitative.png", test, results, count=4)
+        (tmp / "card.json").write_text(json.dumps(card, indent=2))
+        (tmp / "README.md").write_text(card_markdown(card))
+
+    write_folder(out_dir, write)
+    return card
+
+
+def write_folder(out_dir, write) -> Path:
+    """`write(tmp)` fills a temporary folder beside `out_dir`, which then replaces `out_dir`:
+    a failed or interrupted export leaves the previous folder (or none) in place."""
     out_dir = Path(out_dir)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.partial-", dir=out_dir.parent))
     os.chmod(tmp, 0o755)  # mkdtemp makes it private; a model folder is for everyone to read
     try:
-        ckpt.save(tmp / "model.pt", keep)
-        evaluate.qualitative_png(tmp / "qualitative.png", test, results, count=4)
-        (tmp / "card.json").write_text(json.dumps(card, indent=2))
-        (tmp / "README.md").write_text(card_markdown(card))
+        write(tmp)
         if out_dir.exists():
             shutil.rmtree(out_dir)
         os.replace(tmp, out_dir)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+    return out_dir
+
+
+# Keys of a checkpoint that inference does not need (a training checkpoint's extras).
+TRAINING_ONLY = ("discriminator", "optimizers", "rng", "format", "distill")
+
+
+def export_label_free(checkpoint_path, name: str, out_dir, calib: dict, held: dict,
+                      source: dict, inference=None) -> dict:
+    """Ship a model from frames without ground truth (a recording of the user's own part):
+    out_dir/model.pt (inference weights, float32, tau calibrated on `calib` without labels,
+    the inference settings), card.json, README.md, qualitative.png.
+
+    `calib` and `held` are frame dicts (x, fg, labels or None; `selfcheck.load_bag_frames`):
+    tau from `calib` (`selfcheck.calibrate`), the label-free measures on `held`
+    (`selfcheck.measure`), and where `held` has labels, mIoU of InSeGAN, K-Means and
+    Felzenszwalb on those frames too. `source` describes where the frames came from (for the
+    card). `inference`: the test-time settings to ship (default: the checkpoint's). Accepts a
+    training checkpoint or an exported model.pt."""
+    import torch
+
+    from . import checkpoint as ckpt
+    from . import evaluate, selfcheck
+    from .segment import Segmenter
+
+    torch.set_num_threads(1)  # as the card says, and as the node runs by default
+    state = ckpt.load(checkpoint_path)
+    seg = Segmenter.from_checkpoint(checkpoint_path, device="cpu")
+    if inference is not None:
+        seg.inference = inference
+    seg.tau, tau_scores = selfcheck.calibrate(seg, calib["x"], calib["fg"])
+    out = selfcheck.segment_frames(seg, held["x"], held["fg"])
+    measures = selfcheck.measure(seg, held["x"], held["fg"], out)
+    labelled = None
+    if held.get("labels") is not None:
+        results = evaluate.run_methods(held, seg.model_cfg.n_instances, seg,
+                                       ["kmeans", "felzenszwalb"], progress=False)
+        labelled = evaluate.summarise(results, len(held["x"]))
+
+    keep = {k: v for k, v in state.items() if k not in TRAINING_ONLY}
+    keep.update(tau=seg.tau, inference=seg.inference.to_dict(), precision="float32")
+    inf = seg.inference
+    card = {
+        "name": name, "label_free": True, "n_instances": seg.model_cfg.n_instances,
+        "model_config": state["model_config"], "train_config": state.get("train_config"),
+        "training_data": state.get("data"), "iterations": state.get("iteration"),
+        "wall_minutes": round(state.get("elapsed_seconds", 0) / 60, 1),
+        "checkpoint": str(checkpoint_path),
+        "hardware": f"{platform.machine()} CPU, {os.cpu_count()} cores (torch threads: 1)",
+        "source": source,
+        "calibration": {"frames": len(calib["x"]), "index": _span(calib.get("index")),
+                        "criterion": "IoU of the rendered foreground (max render >= tau) with "
+                                     "the input's (x > -1), mean over frames",
+                        "scores": {f"{t:.3f}": v for t, v in tau_scores.items()}},
+        "held_out": {"frames": len(held["x"]), "index": _span(held.get("index")),
+                     "stamp_ns": _span(held.get("stamp_ns"))},
+        "tau": seg.tau, "refine_steps": inf.refine_steps, "hypotheses": inf.refine_hypotheses,
+        "smooth_iters": inf.smooth.iters, "keep": inf.refine_keep, "inference": inf.to_dict(),
+        "encoder_precision": seg.resolve_precision(inf.encoder_precision),
+        "precision": "float32",  # no labels to show that float16 weights change nothing
+        "measures": measures, "labelled": labelled,
+    }
+
+    def write(tmp: Path) -> None:
+        ckpt.save(tmp / "model.pt", keep)
+        selfcheck.sheet_png(tmp / "qualitative.png", held["x"], out, labels_gt=held.get("labels"))
+        (tmp / "card.json").write_text(json.dumps(card, indent=2))
+        (tmp / "README.md").write_text(label_free_markdown(card))
+
+    write_folder(out_dir, write)
     return card
+
+
+def export_from_bag(checkpoint_path, bag, name: str, out_dir, depth_topic: str | None = None,
+                    labels_topic: str | None = None, held_out: float = 0.2,
+                    frames: int | None = 200, inference=None) -> dict:
+    """`export_label_free` on a bag: tau from its first frames, the measures on its last
+    `held_out` fraction (at most `frames` of each, spread evenly); labels only from
+    `labels_topic`, when named."""
+    from . import selfcheck
+    from .checkpoint import CheckpointError, load
+    from .paths import resolve_bag
+    from .preprocess import PreprocessConfig
+
+    path = resolve_bag(str(bag), "--bag")
+    try:
+        prep = PreprocessConfig.from_dict(load(checkpoint_path)["preprocess_config"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise CheckpointError(f"{checkpoint_path}: bad preprocessing config ({e})") from None
+    all_frames = selfcheck.load_bag_frames(path, prep, depth_topic, labels_topic)
+    calib, held = selfcheck.split_held_out(all_frames, held_out, frames)
+    total = len(all_frames["x"])
+    source = {"kind": "bag", "path": str(path), "depth_topic": depth_topic,
+              "labels": labels_topic, "frames": total,
+              "description": f"bag `{path}`",
+              "held_out_rule": f"the last {100 * held_out:.0f} % of the bag's frames in time "
+                               "order"}
+    return export_label_free(checkpoint_path, name, out_dir, calib, held, source, inference)
+
+
+def export_from_dataset(checkpoint_path, data_root, name: str, out_dir,
+                        frames: int | None = 200, inference=None) -> dict:
+    """`export_label_free` on a simulated data set, as if it had no labels: tau from its
+    validation split without labels, the measures on its test split (whose labels give the
+    mIoU rows)."""
+    from . import data as data_mod
+    from .checkpoint import CheckpointError, load
+    from .preprocess import PreprocessConfig
+
+    try:
+        prep = PreprocessConfig.from_dict(load(checkpoint_path)["preprocess_config"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise CheckpointError(f"{checkpoint_path}: bad preprocessing config ({e})") from None
+    calib = data_mod.load_sim_split(data_root, "val", prep, limit=frames)
+    held = data_mod.load_sim_split(data_root, "test", prep, limit=frames)
+    calib["labels"] = None  # label-free: tau from the frames alone
+    if len(calib["x"]) == 0 or len(held["x"]) == 0:
+        raise ValueError(f"{data_root}: needs frames in its val and test splits")
+    source = {"kind": "data set", "path": str(data_root), "labels": "the data set's test split",
+              "frames": len(calib["x"]) + len(held["x"]),
+              "description": f"simulated data set `{data_root}` (val and test splits)",
+              "held_out_rule": "its test split"}
+    return export_label_free(checkpoint_path, name, out_dir, calib, held, source, inference)
+
+
+def _span(values) -> list[int] | None:
+    """[first, last] of a frame index or stamp array, for the card."""
+    if values is None or len(values) == 0:
+        return None
+    return [int(values[0]), int(values[-1])]
+
+
+def _frames_text(part: dict) -> str:
+    """' (frames a to b of the bag)' where the card knows them."""
+    return f" (frames {part['index'][0]} to {part['index'][1]})" if part.get("index") else ""
+
+
+def label_free_markdown(card: dict) -> str:
+    """README.md of a model exported from frames without labels (`export_label_free`)."""
+    from .evaluate import format_table
+    from .selfcheck import format_measures
+
+    src, m, held, cal = card["source"], card["model_config"], card["held_out"], card["calibration"]
+    data = card.get("training_data") or {}
+    trained = (f"{data.get('source', '?')} `{data.get('path', '?')}` "
+               f"({data.get('train_frames', '?')} training frames)" if data else "unknown")
+    lines = [
+        f"# Model card: {card['name']}", "",
+        f"* **Model:** n = {card['n_instances']} per bin, renderer {m['renderer']}, composite "
+        f"{m['composite']}, nf {m['nf']}, latent {m['latent_dim']}",
+        f"* **Training:** {trained}; {card['iterations']} iterations, {card['wall_minutes']} min "
+        f"wall time",
+        f"* **Checked on:** {src['description']}: {src['frames']} frames. tau calibrated without "
+        f"labels on {cal['frames']} frames{_frames_text(cal)}, measured on {held['frames']} "
+        f"held-out frames{_frames_text(held)}: {src['held_out_rule']}",
+        f"* **Inference:** tau {card['tau']:.3f} (from the frames: {cal['criterion']}), "
+        + _settings_text(card["inference"]) + f", weights stored in {card['precision']}; "
+        f"{card['hardware']}", "",
+        "## Label-free measures on the held-out frames", "",
+        *[f"* {line}" for line in format_measures(card["measures"]).splitlines()], "",
+        "Reconstruction L1: the z-buffered render against the model's 64 x 64 input; coverage: "
+        "the input-foreground pixels where some instance's render reaches tau; a visible "
+        f"instance labels at least {card['measures']['min_visible_pixels']} of the 64 x 64 "
+        "pixels.", "",
+    ]
+    if card.get("labelled"):
+        lines += [f"## Against the ground truth ({src.get('labels')})", "",
+                  format_table(card["labelled"]), ""]
+    lines += ["![qualitative](qualitative.png): input | reconstruction | labels | each instance "
+              "rendered alone" + (" | ground truth" if card.get("labelled") else ""), ""]
+    return "\n".join(lines)
 
 
 def sample_bag_scores(seg, bag_name: str) -> dict:
@@ -151,7 +339,7 @@ def sample_bag_scores(seg, bag_name: str) -> dict:
     from . import data as data_mod
     from . import evaluate
     from .metrics import mean_miou
-    from .nodes.bin_replay import resolve_bag
+    from .paths import resolve_bag
 
     path = resolve_bag(bag_name)
     frames = data_mod.load_bag(path, seg.prep_cfg)
@@ -196,13 +384,13 @@ def _settings_text(d: dict) -> str:
     cfg = InferenceConfig.from_dict(d)
     smooth = cfg.smooth
     if cfg.refine_steps == 0:
-        start = (f"no refinement, the best-fitting of {cfg.hypotheses} starting points"
-                 if cfg.hypotheses > 1 else "no refinement")
+        start = (f"no refinement, the best-fitting of {cfg.refine_hypotheses} starting points"
+                 if cfg.refine_hypotheses > 1 else "no refinement")
     else:
-        keep = f", the best-fitting {cfg.keep} refined" if cfg.keep else ""
-        start = (f"{cfg.refine_steps} refinement iterations from {cfg.hypotheses} starting "
+        keep = f", the best-fitting {cfg.refine_keep} refined" if cfg.refine_keep else ""
+        start = (f"{cfg.refine_steps} refinement iterations from {cfg.refine_hypotheses} starting "
                  f"point(s){keep}")
-    precision = "" if cfg.precision == "float32" else f", encoder in {cfg.precision}"
+    precision = "" if cfg.encoder_precision == "float32" else f", encoder in {cfg.encoder_precision}"
     return (f"{start}, {smooth.iters} smoothing iterations + {smooth.full_res_active} at full "
             f"resolution{precision}")
 

@@ -5,15 +5,29 @@ not an object is exactly -1 and objects rise towards +1. This module makes that 
 depth frame, simulated or from a camera, always the same way (the paper's real-data recipe):
 
 1. the bin region: `PreprocessConfig.roi` if given, else the bounding box of `polygon` if given,
-   else `find_bin_roi` (the largest flat region at the most common depth that does not touch
-   the image border: the bin floor, with the table outside and the walls between them);
-   `margin` pixels are shaved off so that the walls stay out;
-2. pixels outside `polygon` (if given) are masked as background;
-3. the floor depth: `floor_depth` if given, else per frame the median of the pixels in the
-   farthest well-populated depth mode inside the region (robust to objects covering the floor);
-4. heights = floor depth - depth; missing pixels (0, NaN, +-inf: no reading) take the height of
-   their nearest valid pixel (cv2.distanceTransformWithLabels, 5 x 5 chamfer distance), so holes
-   neither become objects nor cut them;
+   else `find_bin` (the bin floor's outline and plane, for any camera tilt up to about 10
+   degrees, the bin anywhere in the image or partly out of it); `margin` pixels are shaved off
+   so that the walls stay out;
+2. pixels outside `polygon` (if given) are masked as background. The automatic path uses the
+   bounding box of the outline `find_bin` found, not the outline itself: masking the outline
+   cuts objects that lean on the walls' inner faces, and on tilted simulated bins the box
+   scores higher (`sim.view_benchmark`, "node" against "auto" with the outline: 0.713 against
+   0.709 at 5 degrees, 0.708 against 0.700 at 10, 20 frames each);
+3. the floor: `floor_depth` if given (a level floor: one depth), else the plane `floor_plane`
+   if given (a fixed tilted camera), else per frame a plane fitted robustly to the region
+   (`fit_floor_plane`: RANSAC then least squares, in inverse depth, which is exactly affine in
+   the pixel coordinates for a plane seen through a pinhole camera, so no intrinsics are
+   needed);
+4. heights = floor depth - depth at each pixel, the floor's depth taken along the pixel's own
+   ray: the drop in depth from the floor to the surface. For a camera looking straight down
+   that is exactly the height above the floor; tilted, it is the height along the floor's
+   normal divided by n . K^-1 (u, v, 1) (n the normal in camera axes): for the 848 x 480
+   D435 preset tilted 10 degrees that factor is 0.88-1.09 over the whole image and 0.94-0.99
+   over the benchmark's bin (`sim.view_benchmark`), so a 2 cm object reads at most 1-2 mm off:
+   the size of the sensor's noise, well inside min_height, and the normal height would need
+   the camera's intrinsics, which this module does without. Missing pixels (0, NaN, +-inf: no
+   reading) take the height of their nearest valid pixel (cv2.distanceTransformWithLabels,
+   5 x 5 chamfer distance), so holes neither become objects nor cut them;
 5. foreground = height > `min_height` (about half an object height), both at the input's
    resolution (`Prepared.full_fg`) and after an INTER_AREA resize of the heights to size x size;
 6. x = clip(height / max_height, 0, 1) * 2 - 1, and exactly -1 on background.
@@ -23,12 +37,10 @@ depth frame, simulated or from a camera, always the same way (the paper's real-d
 over the edge of the bin floor), `resize_labels` brings ground truth to the model's resolution
 for evaluation.
 
-Speed (one core: cv2.setNumThreads(1); a simulated RealSense-preset frame with sensor noise at
-1280 x 720, 1 % missing pixels; best of 7 x 100 calls on this project's 2-core machine while
-both cores were also busy with a simulation run, so an idle machine does better): prepare()
-takes 1.4 ms with `roi` and `floor_depth` given, 1.9 ms with the floor estimated, 4-7 ms fully
-automatic (find_bin_roi alone 2.5-5 ms; for a fixed bin find it once and pass it as `roi`).
-A 224 x 224 simulated frame: 0.3 ms with `roi` and `floor_depth`, 1.4 ms automatic.
+Speed: the fixed path (region and floor given) costs one or two milliseconds at 1280 x 720; a
+plane fitted per frame on a subsample of the region (at most 1500 pixels) adds about as much
+again, and `find_bin` tens (find the bin once for a fixed camera and pass it as `roi`);
+`python -m inseggan_ros.sim.view_benchmark` measures the ratios on the machine at hand.
 """
 from __future__ import annotations
 
@@ -41,6 +53,10 @@ import cv2
 import numpy as np
 
 Rect = tuple[int, int, int, int]  # x0, y0, x1, y1 (pixels, end exclusive)
+# A floor plane (a, b, c): 1 / depth = a * u + b * v + c at pixel (u, v) = (column, row) of the
+# full frame. A plane seen through a pinhole camera is exactly affine in inverse depth, so it is
+# fitted and used without the camera's intrinsics; a level floor at depth z is (0, 0, 1 / z).
+Plane = tuple[float, float, float]
 
 
 # ------------------------------------------------------------------------------ configuration
@@ -50,6 +66,9 @@ class PreprocessConfig:
     roi: Rect | None = None  # bin region x0, y0, x1, y1 (exclusive end); None = find it
     polygon: tuple[tuple[float, float], ...] | None = None  # bin outline (u, v) in pixels
     floor_depth: float | None = None  # metres from the camera to the bin floor; None = estimate
+    # The floor as a plane, for a fixed tilted camera: (a, b, c) with 1 / depth = a * u + b * v
+    # + c at pixel (u, v) of the full frame (`fit_floor_plane` measures it); None = estimate.
+    floor_plane: tuple[float, float, float] | None = None
     min_height: float = 0.006  # metres above the floor below which a pixel is background
     max_height: float = 0.05  # metres above the floor mapped to +1
     margin: int = 2  # pixels shaved off every side of the region
@@ -90,6 +109,19 @@ class PreprocessConfig:
                                                  and self.floor_depth > 0):
             raise ValueError(f"floor_depth {self.floor_depth!r} invalid; valid: metres > 0, or "
                              "None to estimate it per frame")
+        if self.floor_plane is not None:
+            try:
+                plane = tuple(float(v) for v in self.floor_plane)
+            except (TypeError, ValueError):
+                plane = ()
+            if len(plane) != 3 or not np.isfinite(plane).all() or not any(plane):
+                raise ValueError(f"floor_plane {self.floor_plane!r} invalid; valid: three finite "
+                                 "numbers a, b, c with 1 / depth = a * u + b * v + c at pixel "
+                                 "(u, v), or None to fit the floor per frame")
+            if self.floor_depth is not None:
+                raise ValueError("give floor_depth (a level floor) or floor_plane (a tilted "
+                                 "one), not both")
+            object.__setattr__(self, "floor_plane", plane)
         if not (math.isfinite(self.max_height) and self.max_height > 0):
             raise ValueError(f"max_height {self.max_height!r} invalid; valid: metres > 0")
         if not (math.isfinite(self.min_height) and 0 <= self.min_height < self.max_height):
@@ -109,6 +141,7 @@ class PreprocessConfig:
         d = asdict(self)
         d["roi"] = list(self.roi) if self.roi is not None else None
         d["polygon"] = [list(p) for p in self.polygon] if self.polygon is not None else None
+        d["floor_plane"] = list(self.floor_plane) if self.floor_plane is not None else None
         return d
 
     @staticmethod
@@ -123,17 +156,26 @@ class PreprocessConfig:
 @dataclass
 class Prepared:
     """One preprocessed frame and what is needed to map results back to its pixels."""
+
     x: np.ndarray  # (size, size) float32 in [-1, 1]; background exactly -1
     fg: np.ndarray  # (size, size) bool, x > -1
     heights: np.ndarray  # (size, size) float32 metres above the floor (before clipping)
     roi: Rect  # the region used (margin already shaved), input pixels
-    floor_depth: float  # metres
+    floor_depth: float  # metres, at the region's centre (the floor may be tilted: floor_plane)
     full_fg: np.ndarray  # (H, W) bool foreground at the input's resolution
     shape: tuple[int, int]  # (H, W) of the input
+    floor_plane: Plane | None = None  # the floor used, `Plane`; None = level at floor_depth
 
     @property
     def size(self) -> int:
         return self.x.shape[0]
+
+    def floor_at(self, rect: Rect) -> np.ndarray | float:
+        """The floor's depth (metres) over the pixels of `rect`: an array for a tilted floor,
+        the number floor_depth for a level one (which broadcasts the same way)."""
+        if self.floor_plane is None:
+            return self.floor_depth
+        return plane_depth(self.floor_plane, rect)
 
 
 # ------------------------------------------------------------------------------ helpers
@@ -167,14 +209,6 @@ def _mm_histogram(values: np.ndarray) -> tuple[np.ndarray, int]:
     mm = np.rint(values * np.float32(1000)).astype(np.int32)
     lo = int(mm.min())
     return np.bincount(mm - lo), lo
-
-
-def _sample(values_2d: np.ndarray, mask: np.ndarray, max_pixels: int = 20_000) -> np.ndarray:
-    """Valid values, subsampled on a regular grid when there are many (for histograms)."""
-    step = max(1, int(math.sqrt(values_2d.size / max_pixels)))
-    if step > 1:
-        values_2d, mask = values_2d[::step, ::step], mask[::step, ::step]
-    return values_2d[mask]
 
 
 def estimate_floor(depths: np.ndarray, window: float = 0.003) -> float:
@@ -218,68 +252,450 @@ def _polygon_mask(shape: tuple[int, int], polygon: tuple) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------ the bin
-def find_bin_roi(depth_m: np.ndarray, tolerance: float | None = None) -> Rect:
-    """Bounding box (x0, y0, x1, y1, end exclusive) of the bin floor in one depth image.
-
-    The floor depth is the most common depth (1 mm histogram mode) of the valid pixels; the
-    floor is the union of the connected regions (after a 3 x 3 opening; the largest and every
-    piece of at least an eighth of the minimum area) of pixels within `tolerance` (default
-    max(3 mm, 0.5 % of the depth)) of it that do not touch the image border: a
-    table or ground at the same depth around the bin touches the border, the walls separate it
-    from the floor. Images over 400k pixels are searched at half resolution and the box is then
-    refined at full resolution. Raises ValueError when there is no such region."""
-    d, valid = _sanitize(depth_m)
-    return _find_roi(d, valid, tolerance)
+# ------------------------------------------------------------------------------ the floor
+def plane_depth(plane: Plane, rect: Rect) -> np.ndarray:
+    """Depth (metres, float32) of the plane over the pixels of rect = (x0, y0, x1, y1); inf
+    or negative where the plane is behind the camera there."""
+    a, b, c = plane
+    x0, y0, x1, y1 = rect
+    inv = (a * np.arange(x0, x1, dtype=np.float64))[None, :] \
+        + (b * np.arange(y0, y1, dtype=np.float64) + c)[:, None]
+    with np.errstate(divide="ignore"):
+        return (1.0 / inv).astype(np.float32)
 
 
-def _flat(d: np.ndarray, depth: float, tol: float) -> np.ndarray:
-    """uint8 mask (255 = yes) of pixels within tol of depth, after a 3 x 3 opening."""
-    flat = cv2.inRange(d, depth - tol, depth + tol)
-    return cv2.morphologyEx(flat, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
-
-
-def _largest_region(mask: np.ndarray, min_area: int, inner: bool) -> Rect | None:
-    """Bounding box of the 8-connected regions of a uint8 mask that (if inner) do not touch the
-    border: the largest one and every other one of at least min_area / 8 pixels (objects lying
-    across the bin cut its floor into pieces); None if the largest has fewer than min_area."""
-    n, labels = cv2.connectedComponents(mask, connectivity=8)
-    area = np.bincount(labels.ravel(), minlength=n)
-    area[0] = 0
-    if inner:
-        area[np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]])] = 0
-    if area.max() < min_area:
+def _fit_plane(u: np.ndarray, v: np.ndarray, z: np.ndarray, tol: float,
+               hypotheses: int = 128, score_points: int = 400) -> Plane | None:
+    """Robust floor plane through points (u, v, depth z > 0), in inverse depth; None if there
+    are too few. RANSAC: planes through 3 points drawn from the farthest 30 % (the floor lies
+    behind the objects), each scored by its points within `tol` (metres of depth) minus twice
+    those more than tol behind it (nothing lies under the floor: this rejects planes through
+    object tops); then least squares on the best one's inliers, twice, each point weighted by
+    z^2 so that its residual is in depth rather than inverse depth. Deterministic."""
+    if len(z) < 10:
         return None
-    keep = area >= max(1, min_area // 8)
-    region = keep[labels]
-    rows, cols = np.flatnonzero(region.any(1)), np.flatnonzero(region.any(0))
-    return int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1
+    u0, v0 = float(u.mean()), float(v.mean())  # centred coordinates: well-conditioned sums
+    uc, vc = u - u0, v - v0
+    A = np.stack([uc, vc, np.ones_like(u)], 1).astype(np.float64)
+    w = 1.0 / z.astype(np.float64)
+    rng = np.random.default_rng(0)
+    far = np.flatnonzero(z >= np.quantile(z, 0.7))
+    idx = rng.choice(far if len(far) >= 3 else np.arange(len(z)), (hypotheses, 3))
+    M = A[idx]
+    ok = np.abs(np.linalg.det(M)) > 20.0  # the 3 points span a triangle of > 10 square pixels
+    if not ok.any():
+        return None
+    planes = np.linalg.solve(M[ok], w[idx[ok]][..., None])[..., 0].astype(np.float32)  # (K, 3)
+    sub = np.linspace(0, len(z) - 1, min(len(z), score_points)).astype(np.intp)
+    # (S, K) heights above each plane; written out elementwise: a BLAS product of this shape
+    # spends more time starting threads than computing
+    inv = (uc[sub, None].astype(np.float32) * planes[:, 0] + vc[sub, None].astype(np.float32)
+           * planes[:, 1] + planes[:, 2])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = np.float32(1) / inv - z[sub, None].astype(np.float32)
+    score = (np.abs(r) < tol).sum(0) - 2 * (r < -tol).sum(0)
+    best = planes[int(np.argmax(score))].astype(np.float64)
+    for _ in range(2):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inl = np.abs(1.0 / (uc * best[0] + vc * best[1] + best[2]) - z) < tol
+        if inl.sum() < 3:
+            break
+        Aw = A[inl] * (z[inl].astype(np.float64) ** 2)[:, None]  # rows weighted by z^2
+        ww = w[inl] * z[inl].astype(np.float64) ** 2
+        best = np.linalg.solve(np.einsum("ni,nj->ij", Aw, Aw), np.einsum("ni,n->i", Aw, ww))
+    a, b, c = (float(x) for x in best)
+    return a, b, c - a * u0 - b * v0
 
 
-def _find_roi(d: np.ndarray, valid: np.ndarray, tolerance: float | None) -> Rect:
-    counts, lo = _mm_histogram(_sample(d, valid))
-    mode = (lo + int(np.argmax(counts))) / 1000.0
-    tol = max(0.003, 0.005 * mode) if tolerance is None else float(tolerance)
+def _grid_points(d: np.ndarray, mask: np.ndarray, x0: int = 0, y0: int = 0,
+                 max_points: int = 3000) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(u, v, depth) of the mask's pixels on a regular grid of at most about max_points."""
+    step = max(1, math.ceil(math.sqrt(mask.size / max_points)))
+    rows, cols = np.nonzero(mask[::step, ::step])
+    z = d[::step, ::step][rows, cols]
+    return (cols * step + x0).astype(np.float64), (rows * step + y0).astype(np.float64), z
+
+
+def _tolerance(z: float) -> float:
+    """Metres within which a pixel belongs to the floor: sensor noise at depth z, 3 mm min."""
+    return max(0.003, 0.005 * z)
+
+
+def fit_floor_plane(depth_m: np.ndarray, roi: Rect | None = None,
+                    tolerance: float | None = None) -> Plane:
+    """The bin floor's plane (`Plane`) in one depth frame, from the pixels of `roi` (default:
+    the bin region `find_bin` finds), robust to objects, holes and walls (see `_fit_plane`).
+    Measure it once for a fixed camera and give it as `PreprocessConfig.floor_plane`."""
+    d, valid = _sanitize(depth_m)
+    if roi is None:
+        return _find_bin(d, valid, tolerance).plane
+    x0, y0, x1, y1 = roi
+    u, v, z = _grid_points(d[y0:y1, x0:x1], valid[y0:y1, x0:x1], x0, y0)
+    tol = _tolerance(float(np.median(z))) if tolerance is None and len(z) else tolerance
+    plane = _fit_plane(u, v, z, tol)
+    if plane is None:
+        raise ValueError(f"cannot fit the floor: too few valid pixels in the region {roi}")
+    return plane
+
+
+# ------------------------------------------------------------------------------ the bin
+@dataclass(frozen=True)
+class BinRegion:
+    """What `find_bin` finds: the bin floor's bounding box, outline and plane."""
+
+    roi: Rect  # bounding box of the floor, x0, y0, x1, y1, end exclusive
+    polygon: tuple[tuple[float, float], ...]  # the visible floor's outline (u, v), convex
+    plane: Plane  # the floor, fitted on its own pixels
+
+
+def find_bin(depth_m: np.ndarray, tolerance: float | None = None) -> BinRegion:
+    """The bin floor in one depth frame, for any camera tilt up to about 10 degrees, anywhere
+    in the image, partly out of view or not.
+
+    1. The dominant plane (`_fit_plane` on the whole frame): the table around the bin, or the
+       bin floor itself; heights above it are then free of the tilt.
+    2. The floor: the height histogram's modes (1 mm bins), lowest first: for each, the pixels
+       within `tolerance` (default max(3 mm, 0.5 % of the depth)) of it, after a 3 x 3
+       opening, split into 8-connected regions (pixels with no reading may join pieces). The
+       surroundings (a table or ground around the bin) lie outside the walls, so more than
+       half of their outline runs along the image border, and they are skipped, as are thin
+       strips (a wall's face seen at a slant crosses every level in one); a bin floor, even
+       cut by the border, is enclosed by its walls. The first mode with such a region of at
+       least 1/1000 of the image is the floor: its largest region and every other one of at
+       least an eighth of that (objects lying across the bin cut the floor into pieces). The
+       plane is fitted again on those pixels at full resolution.
+    3. The outline (`_interior`, `_refit_sides`, `_faces`, `_tighten`): objects may cover most
+       of a small bin's floor, so the floor's own pixels do not outline it; the walls do. A
+       flood from the floor through ever higher levels stays inside the walls until it spills
+       over their top; its convex hull, simplified to the rim's sides and each side fitted
+       again to its own pixels, is the bin's opening as the camera sees it. Where the camera
+       sees a wall's inner face along a side (a slope up to the rim), the side moves in to the
+       floor seen there, or, where objects hide it, to the foot of the face's slope.
+    Frames over 100k pixels are searched on a grid of every 2nd (3rd, ...) pixel. Raises
+    ValueError when there is no such floor. Limits: a floor hidden but for a few pixels
+    (under 14 x 14 full-resolution pixels in one piece) is not found, and a bin mostly out of
+    view is found less well (`tests/test_tilted_view.py`)."""
+    d, valid = _sanitize(depth_m)
+    return _find_bin(d, valid, tolerance)
+
+
+def find_bin_roi(depth_m: np.ndarray, tolerance: float | None = None) -> Rect:
+    """Bounding box (x0, y0, x1, y1, end exclusive) of the bin floor (`find_bin`)."""
+    return find_bin(depth_m, tolerance).roi
+
+
+def _no_bin(shape, why: str) -> ValueError:
+    h, w = shape
+    return ValueError(f"no bin found in the {w}x{h} depth image: {why}; give the bin region as "
+                      "the `roi` parameter (x0, y0, x1, y1 pixels)")
+
+
+def _floor_regions(flat: np.ndarray, min_area: int, missing: np.ndarray | None = None
+                   ) -> tuple[np.ndarray | None, np.ndarray]:
+    """(bool mask of the floor pixels of a uint8 flat mask (`find_bin` step 2) or None, bool
+    mask of the surroundings: the large regions skipped for their outline on the border).
+    Pixels with no reading (`missing`, uint8) may join flat pieces into one region (the shadows
+    of objects cut the visible floor); only flat pixels count towards its area."""
+    joined = flat if missing is None else cv2.bitwise_or(flat, missing)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(joined, connectivity=8)
+    area = np.bincount(labels[flat > 0], minlength=n)
+    area[0] = 0
+    h, w = flat.shape
+    inner = np.zeros(n, bool)
+    for k in np.flatnonzero(area >= max(1, min_area // 8)):
+        x, y, bw, bh = stats[k, :4]
+        comp = (labels[y:y + bh, x:x + bw] == k).view(np.uint8)
+        contours, _ = cv2.findContours(comp, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        pts = max(contours, key=len)[:, 0] + (x, y)
+        on_border = ((pts[:, 0] == 0) | (pts[:, 0] == w - 1) | (pts[:, 1] == 0)
+                     | (pts[:, 1] == h - 1)).mean()
+        # not a thin strip either: a wall's face, seen at a slant, crosses every level in one
+        inner[k] = on_border <= 0.5 and cv2.erode(comp, np.ones((7, 7), np.uint8)).any()
+    surroundings = ((area >= min_area) & ~inner)[labels] & (flat > 0)
+    area[~inner] = 0
+    if area.max() < min_area:
+        return None, surroundings
+    return (area >= max(1, area.max() // 8))[labels] & (flat > 0), surroundings
+
+
+def _find_bin(d: np.ndarray, valid: np.ndarray, tolerance: float | None) -> BinRegion:
     h, w = d.shape
-    step = 2 if d.size > 400_000 else 1
-    small = np.ascontiguousarray(d[::step, ::step])
-    best = _largest_region(_flat(small, mode, tol), max(64, small.size // 200), inner=True)
-    if best is None:
-        raise ValueError(f"no bin found in the {w}x{h} depth image: no flat region at the most "
-                         f"common depth ({mode:.3f} m) that does not touch the image border; give "
-                         "the bin region as the `roi` parameter (x0, y0, x1, y1 pixels)")
-    if step == 1:
-        return best
-    # refine at full resolution: the largest flat region in the box grown by one coarse pixel
-    x0, y0 = max(0, (best[0] - 1) * step), max(0, (best[1] - 1) * step)
-    x1, y1 = min(w, (best[2] + 1) * step), min(h, (best[3] + 1) * step)
-    bx0, by0, bx1, by1 = _largest_region(_flat(d[y0:y1, x0:x1], mode, tol), 1, inner=False)
-    return x0 + bx0, y0 + by0, x0 + bx1, y0 + by1
+    u, v, z = _grid_points(d, valid)
+    if len(z) < 10:
+        raise _no_bin(d.shape, "too few valid pixels")
+    tol = _tolerance(float(np.median(z))) if tolerance is None else float(tolerance)
+    plane = _fit_plane(u, v, z, tol)
+    if plane is None:
+        raise _no_bin(d.shape, "no plane in the frame")
+    step = max(1, round(math.sqrt(d.size / 100_000)))
+    small, ok = d[::step, ::step], valid[::step, ::step]
+    a, b, c = plane
+    height = plane_depth((a * step, b * step, c), (0, 0, small.shape[1], small.shape[0])) - small
+    height[~ok] = np.nan
+    hv = height[ok]
+    hv = hv[np.abs(hv) < 0.5]
+    if hv.size == 0:
+        raise _no_bin(d.shape, "no depth near the dominant plane")
+    counts, lo = _mm_histogram(hv)
+    smooth = np.convolve(counts, np.ones(5), "same")
+    min_area = max(32, small.size // 1000)
+    missing = (~ok).view(np.uint8)
+    padded = np.concatenate([[-1.0], smooth, [-1.0]])
+    peaks = np.flatnonzero((smooth >= min_area / 2) & (smooth >= padded[:-2])
+                           & (smooth > padded[2:]))  # local maxima of the histogram
+    region, outside = None, np.zeros(small.shape, bool)
+    for i in peaks:  # farthest (lowest) first
+        level = (lo + i) / 1000.0
+        flat = cv2.inRange(height, level - tol, level + tol)  # NaN (missing) is never in range
+        flat = cv2.morphologyEx(flat, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+        region, around = _floor_regions(flat, min_area, missing)
+        if region is None:  # holes may join the floor to its surroundings: without them
+            region, around = _floor_regions(flat, min_area)
+        outside |= around
+        if region is not None:
+            break
+    if region is None:
+        raise _no_bin(d.shape, "no flat region enclosed by walls at any height of the dominant "
+                               "plane")
+    # the plane again, at full resolution on the floor's own pixels
+    rows, cols = np.nonzero(region)
+    x0, y0 = max(0, (cols.min() - 1) * step), max(0, (rows.min() - 1) * step)
+    x1, y1 = min(w, (cols.max() + 2) * step), min(h, (rows.max() + 2) * step)
+    near = cv2.resize(region.view(np.uint8), (small.shape[1] * step, small.shape[0] * step),
+                      interpolation=cv2.INTER_NEAREST)[y0:y1, x0:x1]
+    if step > 1:
+        near = cv2.dilate(near, np.ones((step + 1, step + 1), np.uint8))
+    crop, cok = d[y0:y1, x0:x1], valid[y0:y1, x0:x1]
+    fu, fv, fz = _grid_points(crop, cok & near.view(bool)
+                              & region_level(crop, plane, x0, y0, level, tol), x0, y0)
+    refit = _fit_plane(fu, fv, fz, tol)
+    if refit is not None:
+        plane, level = refit, 0.0
+    a, b, c = plane
+    height = plane_depth((a * step, b * step, c), (0, 0, small.shape[1], small.shape[0])) \
+        - small - np.float32(level)
+    height[~ok] = np.nan
+    inside, top = _interior(height, region, missing, outside)
+    if inside is None:  # no walls around the floor: its own outline
+        hull = cv2.convexHull(np.stack(np.nonzero(region)[::-1], 1).astype(np.int32))[:, 0]
+    else:  # the inside's outline, each side moved in onto the floor (the walls' inner faces)
+        on_floor = cv2.morphologyEx((np.abs(np.nan_to_num(height, nan=1.0)) <= tol)
+                                    .view(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+        floor_pts = np.stack(np.nonzero(on_floor.view(bool) & inside)[::-1], 1).astype(float)
+        outline = cv2.convexHull(np.stack(np.nonzero(inside)[::-1], 1).astype(np.int32))
+        # the rim's four sides, without the bumps of objects that lean over it
+        outline = cv2.approxPolyDP(outline, 0.03 * cv2.arcLength(outline, True),
+                                   True)[:, 0].astype(float)
+        outline = _refit_sides(outline, inside)
+        faces = _faces(outline, inside, height, top)
+        hull = _tighten(outline, floor_pts, faces) if len(floor_pts) else outline
+    hull = hull * step + (step - 1) / 2.0  # full-resolution pixels
+    hx0, hy0 = max(0, math.floor(hull[:, 0].min())), max(0, math.floor(hull[:, 1].min()))
+    hx1, hy1 = min(w, math.ceil(hull[:, 0].max()) + 1), min(h, math.ceil(hull[:, 1].max()) + 1)
+    return BinRegion(roi=(hx0, hy0, hx1, hy1),
+                     polygon=tuple((float(x), float(y)) for x, y in hull), plane=plane)
+
+
+def _refit_sides(outline: np.ndarray, inside: np.ndarray) -> np.ndarray:
+    """The convex polygon `outline` with each side fitted again (cv2.fitLine, Huber) to the
+    boundary pixels of `inside` along it, twice, and the corners where the new sides meet: an
+    object lying over a corner of the rim pulls that corner out of the hull, the sides' own
+    pixels put it back. `outline` itself if that goes wrong (sides nearly parallel)."""
+    contours, _ = cv2.findContours(inside.view(np.uint8), cv2.RETR_EXTERNAL,
+                                   cv2.CHAIN_APPROX_NONE)
+    pts = max(contours, key=len)[:, 0].astype(float)
+    k = len(outline)
+    lines = []
+    for i in range(k):
+        p, q = outline[i], outline[(i + 1) % k]
+        origin, direction = p, q - p
+        for _ in range(2):
+            n = np.array([-direction[1], direction[0]]) / max(1e-9, np.hypot(*direction))
+            along = (pts - origin) @ direction / max(1e-9, direction @ direction)
+            near = (np.abs((pts - origin) @ n) <= 3) & (along > 0.05) & (along < 0.95)
+            if near.sum() < 10:
+                break
+            vx, vy, x0, y0 = cv2.fitLine(pts[near].astype(np.float32), cv2.DIST_HUBER, 0,
+                                         0.01, 0.01)[:, 0]
+            d = np.array([vx, vy], float)
+            if d @ direction < 0:
+                d = -d
+            start = np.array([x0, y0], float)
+            # keep the side's extent: its ends projected onto the new line
+            origin = start + ((p - start) @ d) * d
+            direction = start + ((q - start) @ d) * d - origin
+        lines.append((origin, direction))
+    corners = []
+    for i in range(k):
+        (p1, d1), (p2, d2) = lines[i - 1], lines[i]
+        det = d1[0] * -d2[1] + d2[0] * d1[1]
+        if abs(det) < 1e-6 * np.hypot(*d1) * np.hypot(*d2):
+            return outline
+        t = ((p2 - p1)[0] * -d2[1] + d2[0] * (p2 - p1)[1]) / det
+        corners.append(p1 + t * d1)
+    corners = np.array(corners)
+    if np.abs(corners - outline).max() > 0.25 * np.ptp(outline, 0).max():
+        return outline  # a side fitted to something else: keep the hull's
+    return corners
+
+
+def _outward(outline: np.ndarray, i: int) -> np.ndarray | None:
+    """Unit outward normal of side i (from vertex i to i + 1) of a convex polygon."""
+    p, q = outline[i], outline[(i + 1) % len(outline)]
+    n = np.array([q[1] - p[1], p[0] - q[0]], float)
+    if not n.any():
+        return None
+    n /= np.hypot(*n)
+    return -n if (outline.mean(0) - p) @ n > 0 else n
+
+
+def _faces(outline: np.ndarray, inside: np.ndarray, height: np.ndarray, top: float) -> list:
+    """For each side of the inside's outline: None, or how many pixels in from it the inner
+    face of a wall that runs along it meets the floor (its slope carried on down).
+
+    The camera sees a face as a slope that rises without a break to the edge of the inside
+    (the flood level `top`): high at the first pixels with a reading (> 0.6 top) and lower
+    5-12 pixels further in (by > 0.12 top); where it looks past a wall, the edge is a step
+    down from the wall's top onto the floor or the objects, lower than that and level. A side
+    along the image border (the bin partly out of view) may cut a face anywhere on its slope:
+    there the slope alone tells."""
+    rows, cols = np.nonzero(inside)
+    pts = np.stack([cols, rows], 1).astype(float)
+    hv = height[rows, cols]
+    h, w = height.shape
+    out = []
+    for i in range(len(outline)):
+        n = _outward(outline, i)
+        p, q = outline[i], outline[(i + 1) % len(outline)]
+        if n is None:
+            out.append(None)
+            continue
+        along = (pts - p) @ (q - p) / max(1e-9, (q - p) @ (q - p))
+        depth_in = p @ n - pts @ n  # pixels from the side, inwards
+        mid = (along > 0.1) & (along < 0.9) & np.isfinite(hv) & (depth_in < 40)
+        if mid.sum() < 10:
+            out.append(None)
+            continue
+        first = float(np.percentile(depth_in[mid], 2))  # the first pixels with a reading
+        e = mid & (depth_in <= first + 2)
+        k = mid & (depth_in >= first + 5) & (depth_in <= first + 12)
+        if not e.any() or not k.any():
+            out.append(None)
+            continue
+        edge, inner = float(np.median(hv[e])), float(np.median(hv[k]))
+        cut = any(abs(p[c] - b) <= 1 and abs(q[c] - b) <= 1 for c, b in
+                  ((0, 0), (0, w - 1), (1, 0), (1, h - 1)))  # along the image border
+        if (cut or edge > 0.6 * top) and edge - inner > 0.12 * top:
+            slope = (edge - inner) / max(1.0, float(depth_in[k].mean() - depth_in[e].mean()))
+            out.append(float(depth_in[e].mean()) + edge / slope)
+        else:
+            out.append(None)
+    return out
+
+
+def _tighten(outline: np.ndarray, points: np.ndarray, faces: list) -> np.ndarray:
+    """The convex polygon `outline` (K, 2) with each side along a face (`_faces`) moved
+    inwards, keeping its direction, onto the convex hull of `points` (N, 2, the visible floor)
+    where that lies near or beyond the foot of the face's slope, else onto that foot. A bin
+    floor's sides are parallel in space to the tops of its walls, so nearly parallel in the
+    image too (they converge only by the perspective of the tilt)."""
+    poly = outline
+    for i in range(len(outline)):
+        n = _outward(outline, i)
+        if n is None or faces[i] is None:
+            continue
+        on_floor, face_foot = float((points @ n).max()), float(outline[i] @ n) - faces[i]
+        # the floor seen near (or beyond) where the face's slope ends: its edge is there;
+        # far inside that, objects hide it: the slope's end is the better guess
+        s = on_floor if on_floor >= face_foot - max(2.0, 0.3 * faces[i]) else face_foot
+        if s < outline[i] @ n:
+            poly = _clip(poly, n, s)
+    return poly
+
+
+def _clip(poly: np.ndarray, n: np.ndarray, s: float) -> np.ndarray:
+    """Convex polygon (K, 2) cut to the half-plane n . x <= s (Sutherland-Hodgman)."""
+    out = []
+    f = poly @ n - s
+    for i in range(len(poly)):
+        j = (i + 1) % len(poly)
+        if f[i] <= 0:
+            out.append(poly[i])
+        if f[i] * f[j] < 0:
+            out.append(poly[i] + (poly[j] - poly[i]) * f[i] / (f[i] - f[j]))
+    return np.array(out) if len(out) >= 3 else poly
+
+
+_WALL_LEVELS = (0.01, 0.015, 0.02, 0.03, 0.04, 0.06, 0.08, 0.12, 0.16, 0.25)  # metres
+
+
+def _border_fraction(comp: np.ndarray) -> float:
+    """Fraction of a bool region's outer outline that runs along the image border."""
+    contours, _ = cv2.findContours(comp.view(np.uint8), cv2.RETR_EXTERNAL,
+                                   cv2.CHAIN_APPROX_NONE)
+    pts = max(contours, key=len)[:, 0]
+    h, w = comp.shape
+    return float(((pts[:, 0] == 0) | (pts[:, 0] == w - 1) | (pts[:, 1] == 0)
+                  | (pts[:, 1] == h - 1)).mean())
+
+
+def _interior(height: np.ndarray, floor: np.ndarray, missing: np.ndarray,
+              outside: np.ndarray) -> tuple[np.ndarray | None, float]:
+    """The bin's inside seen from the camera: (bool mask on the grid of `height` (metres above
+    the floor, NaN = no reading), or None when no walls enclose the floor; the flood level).
+
+    Flooding from the floor through the pixels below a level (and those with no reading)
+    stays inside the walls until the level passes their top, when it spills over to the
+    surroundings (more than half of its outline on the image border, or 1 % of the
+    `outside` found beside the floor's level reached); the last level that
+    stays inside gives the inside: the floor, the objects on it, and the inner faces of the
+    walls that the camera looks at. The level is then bisected 3 times towards the spill."""
+    low = np.where(np.isnan(height), np.inf, height)
+
+    def flood(level, holes):
+        lower = (low < level).view(np.uint8) | holes
+        _, labels = cv2.connectedComponents(lower, connectivity=8)
+        k = np.bincount(labels[floor]).argmax()
+        if k == 0:
+            return None
+        comp = labels == k
+        if _border_fraction(comp) > 0.5 or (comp & outside).sum() > 0.01 * outside.sum():
+            return None  # spilled over the walls
+        return comp
+
+    # pixels with no reading join the inside (the occlusion holes along a wall) unless they
+    # join it to the surroundings (the shadow of an object lying across a wall)
+    holes = missing if flood(_WALL_LEVELS[0], missing) is not None else np.zeros_like(missing)
+    inside, top, spill = None, 0.0, None
+    for level in _WALL_LEVELS:
+        comp = flood(level, holes)
+        if comp is None:
+            spill = level
+            break
+        inside, top = comp, level
+    if inside is None:
+        return None, 0.0
+    for _ in range(3 if spill is not None else 0):  # closer to the top of the walls
+        mid = (top + spill) / 2
+        comp = flood(mid, holes)
+        if comp is None:
+            spill = mid
+        else:
+            inside, top = comp, mid
+    return inside, top
+
+
+def region_level(crop: np.ndarray, plane: Plane, x0: int, y0: int, level: float,
+                 tol: float) -> np.ndarray:
+    """bool: pixels of crop (at x0, y0) within tol of `level` metres above the plane."""
+    h, w = crop.shape
+    return np.abs(plane_depth(plane, (x0, y0, x0 + w, y0 + h)) - crop - level) <= tol
 
 
 def roi_from_camera(camera, bin) -> Rect:
-    """Pixels that lie wholly inside the bounding box of the bin's projected inner floor
-    (`sim.camera.CameraConfig`, `sim.scene.BinConfig`), end exclusive."""
-    uv = camera.project(bin.corners())
+    """Pixels that lie wholly inside the bounding box of the bin's visible inner floor
+    (`polygon_from_camera`; `sim.camera.CameraConfig`, `sim.scene.BinConfig`), end exclusive."""
+    uv = np.asarray(polygon_from_camera(camera, bin))
     eps = 1e-6
     x0 = max(0, math.ceil(uv[:, 0].min() + 0.5 - eps))
     y0 = max(0, math.ceil(uv[:, 1].min() + 0.5 - eps))
@@ -291,7 +707,23 @@ def roi_from_camera(camera, bin) -> Rect:
     return x0, y0, x1, y1
 
 
-def _region(cfg: PreprocessConfig, d: np.ndarray, valid: np.ndarray) -> Rect:
+def polygon_from_camera(camera, bin) -> tuple[tuple[float, float], ...]:
+    """The part of the bin's inner floor that the camera sees, as a convex polygon (u, v) in
+    pixels (`sim.camera.CameraConfig`, `sim.scene.BinConfig`), for `PreprocessConfig.polygon`:
+    the projected floor, cut by the projected top of the walls where a camera beside or
+    tilted over the bin looks past a wall onto the floor (the wall hides what lies behind)."""
+    floor = camera.project(bin.corners()).astype(np.float32)
+    rim = camera.project(bin.corners(bin.wall_height)).astype(np.float32)
+    if all(cv2.pointPolygonTest(rim, (float(u), float(v)), False) >= 0 for u, v in floor):
+        return tuple((float(u), float(v)) for u, v in camera.project(bin.corners()))
+    area, seen = cv2.intersectConvexConvex(floor, rim)
+    if area <= 0 or seen is None:
+        raise ValueError("the walls hide the whole bin floor from the camera; check the camera "
+                         "and bin configuration")
+    return tuple((float(u), float(v)) for u, v in seen[:, 0])
+
+
+def _region(cfg: PreprocessConfig, d: np.ndarray, found: BinRegion | None) -> Rect:
     h, w = d.shape
     if cfg.roi is not None:
         x0, y0, x1, y1 = cfg.roi
@@ -305,7 +737,7 @@ def _region(cfg: PreprocessConfig, d: np.ndarray, valid: np.ndarray) -> Rect:
         if x1 <= x0 or y1 <= y0:
             raise ValueError(f"polygon {cfg.polygon} lies outside the {w}x{h} depth image")
     else:
-        x0, y0, x1, y1 = _find_roi(d, valid, None)
+        x0, y0, x1, y1 = found.roi
     m = cfg.margin
     if x1 - x0 <= 2 * m + 1 or y1 - y0 <= 2 * m + 1:
         raise ValueError(f"bin region {(x0, y0, x1, y1)} is too small for margin {m}; need more "
@@ -325,7 +757,8 @@ def node_defaults(cfg: PreprocessConfig, first_depth_m: np.ndarray) -> Preproces
 def prepare(depth_m: np.ndarray, cfg: PreprocessConfig = PreprocessConfig()) -> Prepared:
     """One depth frame (H, W) in metres (0 or NaN = no reading) -> the model's input."""
     d, valid = _sanitize(depth_m)
-    roi = _region(cfg, d, valid)
+    found = _find_bin(d, valid, None) if cfg.roi is None and cfg.polygon is None else None
+    roi = _region(cfg, d, found)
     x0, y0, x1, y1 = roi
     crop, ok = d[y0:y1, x0:x1], valid[y0:y1, x0:x1]
     inside = None
@@ -336,10 +769,25 @@ def prepare(depth_m: np.ndarray, cfg: PreprocessConfig = PreprocessConfig()) -> 
     usable = ok if inside is None else ok & inside
     if not usable.any():
         raise ValueError(f"no valid depth inside the bin region {roi}; check roi / polygon")
-    floor = cfg.floor_depth
-    if floor is None:
-        floor = estimate_floor(_sample(crop, usable))
-    heights = np.float32(floor) - crop
+    plane = None
+    if cfg.floor_depth is not None:  # a level floor at a known depth
+        floor = cfg.floor_depth
+        heights = np.float32(floor) - crop
+    else:  # a plane: given, found with the bin, or fitted to this frame's region
+        plane = cfg.floor_plane or (found.plane if found is not None else None)
+        if plane is None:
+            u, v, z = _grid_points(crop, usable, x0, y0, max_points=1500)  # per frame: cheap
+            plane = _fit_plane(u, v, z, _tolerance(float(np.median(z))))
+            if plane is None:
+                raise ValueError(f"cannot fit the floor: too few valid pixels in the bin "
+                                 f"region {roi}; check roi / polygon")
+        floor_map = plane_depth(plane, roi)
+        if not (np.isfinite(floor_map).all() and floor_map.min() > 0):
+            raise ValueError(f"floor_plane {plane} puts the floor behind the camera or at "
+                             f"infinity in the bin region {roi}; measure it with "
+                             "fit_floor_plane")
+        floor = float(floor_map[(y1 - y0) // 2, (x1 - x0) // 2])
+        heights = floor_map - crop
     if not ok.all():
         heights = fill_missing(heights, ok)
     if inside is not None:
@@ -352,7 +800,7 @@ def prepare(depth_m: np.ndarray, cfg: PreprocessConfig = PreprocessConfig()) -> 
     x = np.clip(h64 * np.float32(1.0 / cfg.max_height), 0, 1) * 2 - 1
     x[~fg] = -1.0
     return Prepared(x=x.astype(np.float32, copy=False), fg=fg, heights=h64, roi=roi,
-                    floor_depth=float(floor), full_fg=full_fg, shape=d.shape)
+                    floor_depth=float(floor), full_fg=full_fg, shape=d.shape, floor_plane=plane)
 
 
 def prepare_batch(depths: Iterable[np.ndarray], cfg: PreprocessConfig = PreprocessConfig()
@@ -431,7 +879,7 @@ def extend_labels(labels: np.ndarray, depth_m: np.ndarray, prep: Prepared,
     steep[:-1] |= down
     steep[:, 1:] |= across
     steep[:, :-1] |= across
-    above = (d > 0) & (prep.floor_depth - d > cfg.min_height) & (lab == 0)
+    above = (d > 0) & (prep.floor_at((X0, Y0, X1, Y1)) - d > cfg.min_height) & (lab == 0)
     if cfg.polygon is not None:
         above &= _polygon_mask(labels.shape, cfg.polygon)[Y0:Y1, X0:X1]
     cand = above & ~steep

@@ -35,6 +35,7 @@ class SmoothConfig:
     agreeing with neighbours of similar height, weight * exp(-dh^2 / 2 sigma_height^2 - dp^2 /
     2 sigma_px^2). Labels then follow the input's height edges instead of the 64 x 64 render's.
     Heights are the model input's units ([-1, 1] over max_height); distances in model pixels."""
+
     iters: int = field(default=20, metadata=_doc(
         "iterations of depth-aware label smoothing at the model's 64 x 64 (0 = off, also at "
         "full resolution)", 0, 200))
@@ -66,6 +67,7 @@ class SmoothConfig:
 class InferenceConfig:
     """How a model segments at test time (`segment.Segmenter`): the pose fit from several
     starting points (`refine.py`), label smoothing, the encoder's arithmetic."""
+
     refine_steps: int = field(default=0, metadata=_doc(
         "test-time refinement of the poses: Levenberg-Marquardt iterations per frame (0 = the "
         "best-fitting starting poses as they are)", 0, 500))
@@ -111,6 +113,7 @@ class InferenceConfig:
 @dataclass(frozen=True)
 class Setting:
     """One exposed setting: its name (field, node parameter, flag), type and documentation."""
+
     name: str
     type: type
     doc: str

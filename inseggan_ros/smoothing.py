@@ -44,7 +44,8 @@ def smooth_frame(lab: np.ndarray, h: np.ndarray, n: int, cfg: SmoothConfig) -> n
     dy, dx = np.mgrid[-r:r + 1, -r:r + 1].reshape(2, -1)
     keep = (dy != 0) | (dx != 0)
     dy, dx = dy[keep], dx[keep]
-    spatial = (cfg.weight * np.exp(-(dy ** 2 + dx ** 2) / (2 * cfg.sigma_px ** 2))).astype(np.float32)
+    spatial = (cfg.weight
+               * np.exp(-(dy ** 2 + dx ** 2) / (2 * cfg.sigma_px ** 2))).astype(np.float32)
     moving = np.nonzero(free[rows, cols])[0]
     if len(moving) == 0:
         return lab

@@ -54,6 +54,8 @@ class TrainConfig:
     recon_levels: int = 1  # L_p and the real-frame loss: L1 over this many pyramid levels
     background_weight: float = 1.0  # real-frame loss: weight of pixels that are floor
     compactness: float = 0.0  # explicit template: weight of its spread (`template_spread`)
+    template_init: str = "data"  # convex template: start as the box the training frames
+    # suggest ("data", `init_from_data`) or as the generator's fixed default box ("default")
     matching: str = "hungarian"
     augment: bool = True  # random flips
     rotate: bool = False  # and small rotations (+-20 degrees)
@@ -71,6 +73,8 @@ class TrainConfig:
             raise ValueError(f"batch_size must be >= 2, got {self.batch_size}")
         if not 1 <= self.recon_levels <= 6:
             raise ValueError(f"recon_levels must be in 1..6 (64 px down to 2), got {self.recon_levels}")
+        if self.template_init not in ("data", "default"):
+            raise ValueError(f"template_init {self.template_init!r} invalid; valid: data, default")
         if self.matching not in losses.MATCHINGS:
             raise ValueError(f"matching {self.matching!r} invalid; valid: {', '.join(losses.MATCHINGS)}")
         for name in ("lr_g", "lr_d", "lr_e"):  # lr_template may be 0 (= lr_g)
@@ -105,6 +109,13 @@ CONFIGS: dict[str, TrainConfig] = {
                                batch_size=32, lambda_real=1.0, real_trains_generator=True,
                                r1_gamma=10.0, lr_template=0.003, recon_levels=4,
                                compactness=5.0),
+    # A template for any rigid part: a union of convex pieces (flat faces, edges, holes), full
+    # 3D poses; it starts as the box the training frames suggest (`init_from_data`).
+    "cpu_convex": TrainConfig(model=ModelConfig(nf=32, latent_dim=16, composite="zbuffer",
+                                                renderer="convex", spectral_norm=True),
+                              batch_size=32, lambda_real=1.0, real_trains_generator=True,
+                              r1_gamma=10.0, lr_template=0.003, recon_levels=4,
+                              compactness=5.0),
     # The learned renderer, instances rendered alone and z-buffered in training as at test
     # time, and the encoder also fitted to real frames through the frozen generator.
     "cpu": TrainConfig(model=ModelConfig(nf=32, latent_dim=16, composite="zbuffer",
@@ -320,8 +331,11 @@ def guard_divergence(run: Run, stats: dict) -> bool:
 # ----------------------------------------------------------------------------- evaluation
 @torch.no_grad()
 def evaluate(run: Run, val: dict, device: str, frames: int) -> dict:
-    """Validation: mIoU at the calibrated tau when labels exist, and reconstruction error."""
+    """Validation: mIoU at the calibrated tau when labels exist, and reconstruction error.
+    Without labels (a bag) tau comes from the frames themselves (`selfcheck.tau_from_frames`:
+    the rendered foreground that best matches the input's), so it follows the model."""
     from .segment import calibrate_tau, infer
+    from .selfcheck import tau_from_frames
 
     G, E = _unwrap(run.G).eval(), _unwrap(run.E).eval()
     x = torch.from_numpy(val["x"][:frames]).to(device)
@@ -331,10 +345,17 @@ def evaluate(run: Run, val: dict, device: str, frames: int) -> dict:
     fg = torch.from_numpy(val["fg"][:frames]).to(device)
     labels = val.get("labels")
     labels = labels[:frames] if labels is not None else None
-    tau, scores = calibrate_tau(renders, fg, labels)
+    if labels is not None:
+        tau, scores = calibrate_tau(renders, fg, labels)
+    elif fg.any():
+        tau, scores = tau_from_frames(renders, fg, val.get("config"))
+    else:  # empty bins only: nothing to calibrate on
+        tau, scores = run.tau, {run.tau: 0.0}
     result = {"recon_l1": float((recon - x).abs().mean()), "tau": tau}
     if labels is not None:  # calibration scored every tau by mIoU already
         result["miou"] = scores[tau]
+    else:  # how well the rendered foreground matches the input's, at that tau
+        result["fg_iou"] = scores[tau]
     G.train()
     E.train()
     return result
@@ -367,7 +388,7 @@ def plot_curves(history: list, path: Path) -> None:
 
     plot_history(history, path, [("adversarial", "train", ("loss_d", "loss_g")),
                                  ("encoder", "train", ("l_a", "l_i", "l_p", "l_real")),
-                                 ("validation", "val", ("miou", "recon_l1"))])
+                                 ("validation", "val", ("miou", "recon_l1", "fg_iou", "tau"))])
 
 
 # ----------------------------------------------------------------------------- the loop
@@ -407,6 +428,8 @@ def train(cfg: TrainConfig, train_data: dict, val_data: dict | None, out: Path,
     elif last.is_file():
         raise FileExistsError(f"{out} holds a run already (last.pt): pass --resume to continue "
                               "it, or choose another --out")
+    if run.iteration == 0 and cfg.template_init == "data" and hasattr(run.G, "init_from_data"):
+        run.G.init_from_data(train_data["x"], cfg.model.n_instances)  # of the data's size
     if distributed:
         from torch.nn.parallel import DistributedDataParallel as DDP
 
@@ -435,7 +458,11 @@ def train(cfg: TrainConfig, train_data: dict, val_data: dict | None, out: Path,
 
     budget = cfg.max_minutes * 60 if cfg.max_minutes > 0 else math.inf
     start, seen, window_t, window_n = time.monotonic(), 0, time.monotonic(), 0
-    bar = tqdm(total=cfg.max_iterations, initial=run.iteration, desc="training", unit="it",
+    # with a time budget the bar counts its seconds (the iteration cap is then only a bound)
+    by_time = budget < math.inf
+    bar = tqdm(total=round(budget) if by_time else cfg.max_iterations,
+               initial=min(round(run.elapsed), round(budget)) if by_time else run.iteration,
+               desc="training", unit="s" if by_time else "it",
                disable=not (progress and is_main), dynamic_ncols=True)
     stats = {}
 
@@ -484,7 +511,7 @@ def train(cfg: TrainConfig, train_data: dict, val_data: dict | None, out: Path,
             seen += real.shape[0]
             window_n += real.shape[0]
             guard_divergence(run, stats)
-            bar.update(1)
+            bar.update(min(round(elapsed()), bar.total) - bar.n if by_time else 1)
             if run.iteration % cfg.log_every == 0:
                 now = time.monotonic()
                 ips = window_n / max(now - window_t, 1e-9)
@@ -496,7 +523,7 @@ def train(cfg: TrainConfig, train_data: dict, val_data: dict | None, out: Path,
                 if is_main:
                     with open(out / "log.jsonl", "a") as f:
                         f.write(json.dumps(rec) + "\n")
-                    bar.set_postfix(d=f"{stats['loss_d']:.2f}", g=f"{stats['loss_g']:.2f}",
+                    bar.set_postfix(it=run.iteration, d=f"{stats['loss_d']:.2f}", g=f"{stats['loss_g']:.2f}",
                                     a=f"{stats['l_a']:.2f}", p=f"{stats['l_p']:.3f}",
                                     r=f"{stats['l_real']:.3f}", ips=f"{ips:.0f}")
             if run.iteration % cfg.eval_every == 0 or run.iteration == cfg.max_iterations:
@@ -506,7 +533,12 @@ def train(cfg: TrainConfig, train_data: dict, val_data: dict | None, out: Path,
                 checkpoint_now()
     finally:
         bar.close()
-    checkpoint_now(best=not (out / "best.pt").exists())
+    # a run stopped by its time budget between validations: validate its last weights too, so
+    # that their tau (calibrated from the frames on a bag) is the one stored
+    validated = [h["iteration"] for h in run.history if h["kind"] == "val"]
+    improved = (is_main and val_data is not None and bool(validated)
+                and validated[-1] != run.iteration and validate())
+    checkpoint_now(best=improved or not (out / "best.pt").exists())
     checksums = [weights_checksum(run)]
     if distributed:  # every rank reports the checksum of its weights: DDP keeps them identical
         import torch.distributed as dist

@@ -15,7 +15,8 @@ BAGS = REPO / "bags"
 
 
 def installed_executable(name: str) -> Path:
-    """Where `ros2 run inseggan_ros <name>` finds the executable: <prefix>/lib/inseggan_ros/<name>."""
+    """Where `ros2 run inseggan_ros <name>` finds the executable:
+    <prefix>/lib/inseggan_ros/<name>."""
     from ament_index_python.packages import PackageNotFoundError, get_package_prefix
 
     try:

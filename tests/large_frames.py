@@ -31,8 +31,9 @@ def main() -> int:
     else:
         got = set()
         node.create_subscription(Image, "large_frames",
-                                 lambda m: got.add(m.header.frame_id) if len(m.data) == 1280 * 720 * 2
-                                 else None, qos_profile_sensor_data)
+                                 lambda m: got.add(m.header.frame_id)
+                                 if len(m.data) == 1280 * 720 * 2 else None,
+                                 qos_profile_sensor_data)
         print("ready", flush=True)
         deadline = time.time() + value
         while len(got) < n and time.time() < deadline:

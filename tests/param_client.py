@@ -35,7 +35,8 @@ def main():
         print(json.dumps(dict(zip(args, values))), flush=True)
     else:
         name, value = args[0], ast.literal_eval(args[1])
-        request = SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()])
+        request = SetParameters.Request(
+            parameters=[Parameter(name, value=value).to_parameter_msg()])
         result = call(node, SetParameters, f"{node_name}/set_parameters", request).results[0]
         print("ok" if result.successful else f"rejected: {result.reason}", flush=True)
     rclpy.shutdown()

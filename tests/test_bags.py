@@ -157,7 +157,8 @@ def test_cli_errors_are_one_line_without_traceback(tmp):
         p = run_cli("bag-info", bag)
         assert p.returncode == 2
         lines = p.stderr.strip().splitlines()
-        assert len(lines) == 1 and lines[0].startswith(f"inseggan bag-info: error: {bag}:"), p.stderr
+        assert len(lines) == 1 and lines[0].startswith(f"inseggan bag-info: error: {bag}:"), \
+            p.stderr
         assert "Traceback" not in p.stderr
     p = run_cli("bag-info", BAGS / "cylinder_sim", "--topic", "/none")
     assert p.returncode == 2 and "topics: /camera/depth/camera_info" in p.stderr

@@ -18,4 +18,5 @@ def test_images_round_trip(encoding, dtype, channels):
     np.testing.assert_array_equal(conversions.image_to_numpy(msg), arr)
     # a non-contiguous view (a crop) is written as the image it shows
     crop = arr[1:5, 2:8]
-    np.testing.assert_array_equal(conversions.image_to_numpy(conversions.numpy_to_image(crop, encoding)), crop)
+    np.testing.assert_array_equal(
+        conversions.image_to_numpy(conversions.numpy_to_image(crop, encoding)), crop)

@@ -15,7 +15,8 @@ def test_profile_is_installed_and_gives_shared_memory_a_large_segment():
     assert path.is_file() and "share/inseggan_ros/config" in str(path), path
     ns = {"f": "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"}
     root = ET.parse(path).getroot()
-    shm = [t for t in root.iterfind(".//f:transport_descriptor", ns) if t.findtext("f:type", namespaces=ns) == "SHM"]
+    shm = [t for t in root.iterfind(".//f:transport_descriptor", ns)
+           if t.findtext("f:type", namespaces=ns) == "SHM"]
     assert len(shm) == 1 and int(shm[0].findtext("f:segment_size", namespaces=ns)) >= 8 * 2**20
 
 

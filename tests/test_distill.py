@@ -10,7 +10,7 @@ from conftest import run_cli
 from inseggan_ros import checkpoint, losses
 from inseggan_ros.data import load_sim_split
 from inseggan_ros.distill import _features, narrowed
-from inseggan_ros.model import Encoder, ModelConfig
+from inseggan_ros.segment import Segmenter
 
 MODEL = Path(__file__).resolve().parents[1] / "models" / "cylinder" / "model.pt"
 
@@ -24,7 +24,8 @@ def cyl_data(tmp_path_factory):
 
 
 def _pose_loss(path, x, pseudo) -> float:
-    """Hungarian-matched pose-feature error of the checkpoint's encoder against the pseudo-labels."""
+    """Hungarian-matched pose-feature error of the checkpoint's encoder against the
+    pseudo-labels."""
     _, G, E = checkpoint.build_models(checkpoint.load(path), path)
     with torch.no_grad():
         z = E.eval()(x)
@@ -55,10 +56,10 @@ def test_distillation_brings_the_encoder_towards_its_refined_poses(tmp, cyl_data
     before = _pose_loss(MODEL, x, pseudo["poses"])
     after = _pose_loss(out / "last.pt", x, pseudo["poses"])
     # measured here: 0.045 -> 0.029 with the shipped 16-wide encoder (0.095 -> 0.060 with
-    # session 7's 32-wide one); a loss that the flat, untrained result would not lower
+    # the 32-wide one it was pruned from); a loss that the flat, untrained result would not lower
     assert after < 0.85 * before, f"pose error to the refined poses: {before:.4f} -> {after:.4f}"
     # the result is a complete checkpoint: the segmenter loads it, with the source's settings
-    seg = checkpoint.load_for_inference(out / "last.pt", device="cpu")
+    seg = Segmenter.from_checkpoint(out / "last.pt", device="cpu")
     assert seg.segment_batch(x[:2])["labels"].shape == (2, 64, 64)
 
 
@@ -93,7 +94,7 @@ def test_a_narrower_encoder_pruned_from_the_source_learns_the_refined_poses(tmp,
     before, after = _pose_loss(pruned, x, pseudo), _pose_loss(out / "last.pt", x, pseudo)
     # measured here: 0.122 -> 0.062 (8 wide, from the shipped 16-wide encoder)
     assert after < 0.7 * before, f"pose error to the refined poses: {before:.4f} -> {after:.4f}"
-    seg = checkpoint.load_for_inference(out / "last.pt", device="cpu")
+    seg = Segmenter.from_checkpoint(out / "last.pt", device="cpu")
     assert seg.E.cfg.encoder_nf == 8 and seg.segment_batch(x[:2])["labels"].shape == (2, 64, 64)
     p = run_cli("distill", "--checkpoint", MODEL, "--data", cyl_data, "--out", tmp / "bad",
                 "--frames", "8", "--encoder-nf", "12", "--quiet")
@@ -111,14 +112,16 @@ def test_narrowing_keeps_the_widest_channels_and_the_same_width_changes_nothing(
         assert small.derender[0].weight.shape == (width // 2, 1, 4, 4)
         assert small.head[6].weight.shape == (80, 4 * width, 4, 4)
         # each kept channel is one of the source's, weights and all
-        rows = [int((E.derender[0].weight == w).all((1, 2, 3)).nonzero()) for w in small.derender[0].weight]
+        rows = [int((E.derender[0].weight == w).all((1, 2, 3)).nonzero())
+                for w in small.derender[0].weight]
         assert len(set(rows)) == width // 2
 
 
 def test_distill_config_is_validated():
     from inseggan_ros.distill import DistillConfig
 
-    for bad, match in (({"lr_schedule": "linear"}, "lr_schedule 'linear' invalid; valid: constant, cosine"),
+    for bad, match in (({"lr_schedule": "linear"},
+                        "lr_schedule 'linear' invalid; valid: constant, cosine"),
                        ({"encoder_nf": 20}, "encoder_nf 20 invalid"),
                        ({"iterations": 0}, "iterations 0 invalid")):
         with pytest.raises(ValueError, match=match):

@@ -11,7 +11,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PATHS = [str(ROOT / p) for p in ("inseggan_ros", "tests", "launch", "setup.py") if (ROOT / p).exists()]
+PATHS = [str(ROOT / p) for p in ("inseggan_ros", "tests", "launch", "setup.py")
+         if (ROOT / p).exists()]
 
 
 @pytest.mark.linter

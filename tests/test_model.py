@@ -48,10 +48,12 @@ def test_initial_poses_spread_over_the_bin():
 def test_rodrigues_gives_rotations():
     aa = torch.randn(50, 3)
     R = rodrigues(aa)
-    torch.testing.assert_close(R @ R.transpose(1, 2), torch.eye(3).expand(50, 3, 3), atol=1e-5, rtol=0)
+    torch.testing.assert_close(R @ R.transpose(1, 2), torch.eye(3).expand(50, 3, 3),
+                               atol=1e-5, rtol=0)
     torch.testing.assert_close(torch.linalg.det(R), torch.ones(50), atol=1e-5, rtol=0)
     Rz = rodrigues(torch.tensor([[0.0, 0.0, np.pi / 2]]))[0]
-    torch.testing.assert_close(Rz @ torch.tensor([1.0, 0, 0]), torch.tensor([0.0, 1, 0]), atol=1e-6, rtol=0)
+    torch.testing.assert_close(Rz @ torch.tensor([1.0, 0, 0]), torch.tensor([0.0, 1, 0]),
+                               atol=1e-6, rtol=0)
 
 
 def test_discriminator_and_encoder_shapes():
@@ -95,7 +97,8 @@ def brute_force(z, z_hat):
 def test_hungarian_matches_brute_force(n):
     g = torch.Generator().manual_seed(n)
     z, z_hat = torch.randn(6, n, 8, generator=g), torch.randn(6, n, 8, generator=g)
-    assert losses.alignment_loss(z, z_hat, "hungarian").item() == pytest.approx(brute_force(z, z_hat), rel=1e-5)
+    assert losses.alignment_loss(z, z_hat, "hungarian").item() == pytest.approx(
+        brute_force(z, z_hat), rel=1e-5)
 
 
 def test_permuted_codes_align_to_zero_and_mean_gives_one():
@@ -323,13 +326,13 @@ def test_refining_only_the_best_fitting_start():
 
 
 def test_inference_config_validates_and_reads_old_checkpoints():
-    from inseggan_ros.settings import InferenceConfig, SmoothConfig
+    from inseggan_ros.settings import InferenceConfig, SmoothConfig, apply
 
     old = InferenceConfig.from_dict({"refine_steps": 30, "hypotheses": 4})  # pre-smoothing models
     assert old == InferenceConfig(30, 4, 0, SmoothConfig(iters=0))
     cfg = InferenceConfig(48, 8, 2, SmoothConfig(iters=20, full_res_iters=0))
     assert InferenceConfig.from_dict(cfg.to_dict()) == cfg
-    assert cfg.with_smoothing(5).smooth == SmoothConfig(iters=5, full_res_iters=0)
+    assert apply(cfg, {"smooth_iters": 5}).smooth == SmoothConfig(iters=5, full_res_iters=0)
     for bad, match in (({"refine_steps": -1}, "refine_steps -1 invalid"),
                        ({"refine_hypotheses": 0}, "refine_hypotheses 0 invalid; valid: >= 1"),
                        ({"refine_keep": -2}, "refine_keep -2 invalid")):
@@ -362,7 +365,8 @@ def test_settings_have_one_name_as_field_parameter_and_flag():
     args = parser.parse_args(["--refine-hypotheses", "8", "--smooth-full-res-iters", "0",
                               "--encoder-precision", "auto"])
     cfg = settings.apply(settings.InferenceConfig(), settings.from_flags(args))
-    assert (cfg.refine_hypotheses, cfg.smooth.full_res_iters, cfg.encoder_precision) == (8, 0, "auto")
+    assert (cfg.refine_hypotheses, cfg.smooth.full_res_iters,
+            cfg.encoder_precision) == (8, 0, "auto")
     assert settings.values(cfg)["refine_hypotheses"] == 8
     assert settings.apply(cfg, {"roi": [1, 2, 3, 4], "smooth_iters": 3}).smooth.iters == 3
     with pytest.raises(ValueError, match="refine_keep -1 invalid"):
@@ -384,7 +388,8 @@ def test_a_bfloat16_encoder_gives_the_float32_labels():
         x = seg.G.zbuffer(seg.G.render_instances(torch.randn(6, 5, seg.model_cfg.latent_dim)))
     cfg = InferenceConfig(0, 8, 1)
     a = seg.segment_batch(x, settings=cfg)["labels"]
-    b = seg.segment_batch(x, settings=InferenceConfig(0, 8, 1, encoder_precision="bfloat16"))["labels"]
+    b = seg.segment_batch(
+        x, settings=InferenceConfig(0, 8, 1, encoder_precision="bfloat16"))["labels"]
     assert (a != b).float().mean() < 0.01
     assert seg.resolve_precision("auto") == ("bfloat16" if native_bfloat16("cpu") else "float32")
     assert seg.encoder("bfloat16") is seg.encoder("bfloat16")  # one copy of the weights

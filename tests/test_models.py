@@ -83,7 +83,7 @@ def load_as_measured(folder: Path):
     seg = Segmenter.from_checkpoint(folder / "model.pt", device="cpu")
     seg.inference = replace(seg.inference,
                             encoder_precision=card.get("encoder_precision",
-                                                      seg.inference.encoder_precision))
+                                                       seg.inference.encoder_precision))
     return seg
 
 

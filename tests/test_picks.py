@@ -130,7 +130,7 @@ def _probe(tmp, ns, count, timeout, wait_for, *info):
 
 
 def _run(tmp, ns, count, seg_args=(), info=(), timeout=150, wait_for="picks"):
-    """segmenter + probe + bin_replay (simulated cylinders, seed 0, 2 Hz), all in `ns` with
+    """Segmenter + probe + bin_replay (simulated cylinders, seed 0, 2 Hz), all in `ns` with
     their default topics -> (what the probe saved, the segmenter's stderr)."""
     from test_bin_replay import stop
 

@@ -6,7 +6,7 @@ import pytest
 import torch
 from conftest import BAGS, run_cli
 
-from inseggan_ros import bags, checkpoint
+from inseggan_ros import bags
 from inseggan_ros.checkpoint import CheckpointError
 from inseggan_ros.segment import (Segmenter, calibrate_tau, instance_scores,
                                   labels_from_renders)
@@ -146,9 +146,11 @@ def test_eval_cli_writes_table_json_and_png(tiny_model, tmp):
                 "--methods", "kmeans", "--refine-steps", "3", "--refine-hypotheses", "2",
                 check=True, timeout=600)
     r = json.loads((tmp / "ev2" / "results.json").read_text())
-    assert (r["refine_steps"], r["refine_hypotheses"]) == (3, 2) and "3 refinement steps" in p.stdout
+    assert (r["refine_steps"], r["refine_hypotheses"]) == (3, 2)
+    assert "3 refinement steps" in p.stdout
     p = run_cli("eval", "--model", tiny_model / "run" / "best.pt", "--data",
-                tiny_model / "data", "--frames", "4", "--out", tmp / "ev3", "--refine-hypotheses", "0")
+                tiny_model / "data", "--frames", "4", "--out", tmp / "ev3",
+                "--refine-hypotheses", "0")
     assert p.returncode != 0 and "hypotheses 0 invalid; valid: >= 1" in p.stderr
     p = run_cli("eval", "--model", tiny_model / "run" / "best.pt", "--data",
                 tiny_model / "data", "--frames", "4", "--out", tmp / "ev4", "--quiet",
@@ -186,6 +188,7 @@ def test_two_hard_subsets_are_reported():
     assert s["methods"]["inseggan"]["miou_hard"] == pytest.approx(0.8)  # frames 0 and 2
     assert s["methods"]["inseggan"]["miou_hard_felzenszwalb"] == pytest.approx(0.5)  # frame 1
     table = evaluate.format_table(s)
-    assert "Felzenszwalb < 0.8 (1 frames)" in table and "| inseggan | 0.700 | 0.800 | 0.500 |" in table
+    assert "Felzenszwalb < 0.8 (1 frames)" in table
+    assert "| inseggan | 0.700 | 0.800 | 0.500 |" in table
     del results["felzenszwalb"]
     assert "Felzenszwalb" not in evaluate.format_table(evaluate.summarise(results, 3))

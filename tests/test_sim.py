@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from inseggan_ros.sim.camera import CameraConfig, get_camera
-from inseggan_ros.sim.noise import NoiseConfig, apply_noise, get_noise
+from inseggan_ros.sim.noise import NoiseConfig, apply_noise, get_noise, occlusion_holes
 from inseggan_ros.sim.objects import OBJECTS, get_object
 from inseggan_ros.sim.scene import BinSimulator, SceneConfig
 
@@ -109,6 +109,42 @@ def test_noise_statistics():
     assert lost[:, 98:102].all() and not lost[:, :90].any()
     with pytest.raises(ValueError, match="probability"):
         NoiseConfig(random_dropout=2.0)
+
+
+def test_stereo_occlusion_holes_lie_beside_nearer_surfaces():
+    # a floor at 0.5 m and a box 5 cm nearer on columns 100..139; imagers 50 mm apart, fx 400
+    depth = np.full((40, 200), 0.5, np.float32)
+    depth[:, 100:140] = 0.45
+    hidden = occlusion_holes(depth, 0.05 * 400)
+    # the band the second imager cannot see: left of the box, baseline * fx * (1/0.45 - 1/0.5)
+    # = 4.4 pixels wide (less the half-pixel margin), nothing on the box or right of it
+    width = 0.05 * 400 * (1 / 0.45 - 1 / 0.5)
+    cols = np.flatnonzero(hidden.any(0))
+    assert hidden[:, cols].all() and cols.max() == 99 and width - 1.5 <= len(cols) <= width
+    assert not hidden[:, 100:].any()
+    # the RealSense preset makes them (as 0), and needs the focal length to
+    noisy = apply_noise(depth, get_noise("realsense"), np.random.default_rng(0), fx=400.0)
+    assert (noisy[:, cols] == 0).all()
+    with pytest.raises(ValueError, match="stereo_baseline .* focal length fx"):
+        apply_noise(depth, get_noise("realsense"), np.random.default_rng(0))
+    assert NoiseConfig(stereo_baseline=0.05).enabled
+
+
+def test_simulated_holes_lie_on_the_far_side_of_depth_edges():
+    cfg = SceneConfig(object="cylinder", camera=get_camera("realsense_d435"),
+                      noise=get_noise("realsense"))
+    with BinSimulator(cfg) as sim:
+        s = sim.render(2)
+    clean_cfg = SceneConfig(object="cylinder", camera=get_camera("realsense_d435"))
+    with BinSimulator(clean_cfg) as sim:
+        clean = sim.render(2).depth
+    hidden = occlusion_holes(clean, cfg.noise.stereo_baseline * cfg.camera.fx)
+    assert hidden.mean() > 0.005 and (s.depth[hidden] == 0).all()
+    # each hidden pixel is farther than a pixel a few columns to its right
+    rows, cols = np.nonzero(hidden)
+    nearer = np.stack([clean[rows, np.minimum(cols + k, clean.shape[1] - 1)]
+                       for k in range(1, 21)], 1).min(1)
+    assert (nearer < clean[rows, cols] - 0.004).mean() > 0.99
 
 
 def test_bad_configs_are_rejected_clearly():

@@ -33,10 +33,12 @@ class BinConfig:
         if not 0.005 <= self.wall_height <= 1.0:
             raise ValueError(f"bin wall_height {self.wall_height} invalid; valid: 0.005..1 m")
 
-    def corners(self) -> np.ndarray:
-        """The four inner corners of the bin floor, world metres (z = 0)."""
+    def corners(self, height: float = 0.0) -> np.ndarray:
+        """The four inner corners of the bin at `height` above its floor, world metres (the
+        floor: 0, the top of the walls: wall_height)."""
         hx, hy = self.inner_size[0] / 2, self.inner_size[1] / 2
-        return np.array([[-hx, -hy, 0], [hx, -hy, 0], [hx, hy, 0], [-hx, hy, 0]])
+        return np.array([[-hx, -hy, height], [hx, -hy, height], [hx, hy, height],
+                         [-hx, hy, height]])
 
 
 @dataclass(frozen=True)
@@ -82,7 +84,7 @@ class Scene:
 
 @contextlib.contextmanager
 def _quiet_c_output():
-    """pybullet prints its build time from C when imported; keep our CLI output clean."""
+    """Silence C-level output: pybullet prints its build time when imported (clean CLI)."""
     sys.stdout.flush()
     sys.stderr.flush()
     saved = [os.dup(1), os.dup(2)]
@@ -114,7 +116,8 @@ class BinSimulator:
             path = os.path.join(self._tmpdir.name, f"{self.spec.name}_part{i}.obj")
             with open(path, "w") as f:
                 f.writelines(f"v {x:.6f} {y:.6f} {z:.6f}\n" for x, y, z in part)
-                f.writelines(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in ConvexHull(part).simplices)
+                f.writelines(f"f {a + 1} {b + 1} {c + 1}\n"
+                             for a, b, c in ConvexHull(part).simplices)
             self._part_files.append(path)
         self._view = config.camera.view_matrix()
         self._proj = config.camera.projection_matrix()
@@ -220,7 +223,7 @@ class BinSimulator:
         lut[np.array(bodies) + 1] = np.arange(1, len(bodies) + 1)
         labels = lut[np.clip(seg, -1, None) + 1]
         if cfg.noise.enabled:
-            depth = apply_noise(depth, cfg.noise, rng)
+            depth = apply_noise(depth, cfg.noise, rng, fx=cam.fx)
         poses = np.array([sum(map(list, p.getBasePositionAndOrientation(b, physicsClientId=c)), [])
                           for b in bodies], np.float32)
         self.last_timing = {"physics": t1 - t0, "render": time.perf_counter() - t1}
