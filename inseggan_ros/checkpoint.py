@@ -50,7 +50,7 @@ def build_models(state: dict, path="checkpoint"):
     from .model import Encoder, ModelConfig, make_generator
 
     try:
-        cfg = ModelConfig(**state["model_config"])
+        cfg = ModelConfig.from_dict(state["model_config"])
         G, E = make_generator(cfg), Encoder(cfg)
         G.load_state_dict({k: v.float() for k, v in state["generator"].items()})
         E.load_state_dict({k: v.float() for k, v in state["encoder"].items()})

@@ -28,7 +28,8 @@ def _fractions(text: str) -> tuple[float, float, float]:
     try:
         parts = tuple(float(x) for x in text.split(","))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not three numbers like 0.8,0.1,0.1") from None
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not three numbers like 0.8,0.1,0.1") from None
     if len(parts) != 3:
         raise argparse.ArgumentTypeError(f"{text!r}: need three fractions train,val,test")
     return parts
@@ -143,8 +144,9 @@ def _load_training_data(args):
         k = max(1, len(frames["x"]) // 10)
         if len(frames["x"]) < 2 * k:
             raise ValueError(f"{args.bag}: {len(frames['x'])} frames are too few to train on")
-        split = lambda sl: {key: (v[sl] if isinstance(v, np.ndarray) else v)
-                            for key, v in frames.items()}
+        def split(sl):
+            return {key: (v[sl] if isinstance(v, np.ndarray) else v) for key, v in frames.items()}
+
         train, val = split(slice(None, -k)), split(slice(-k, None))
         info = {"source": "bag", "path": str(args.bag), "topic": args.topic,
                 "train_frames": len(train["x"]), "val_frames": len(val["x"])}
@@ -236,7 +238,8 @@ def cmd_eval(args) -> int:
     evaluate.qualitative_png(out / "qualitative.png", d, results)
     print(f"{source}: {summary['frames']} frames, {summary['hard_frames']} hard "
           f"({summary['hard_rule']}); model {args.model}, tau {seg.tau:.2f}, "
-          f"{seg.inference.refine_steps} refinement steps x {seg.inference.refine_hypotheses} starts"
+          f"{seg.inference.refine_steps} refinement steps x "
+          f"{seg.inference.refine_hypotheses} starts"
           + (f" (best {seg.inference.refine_keep} refined)" if seg.inference.refine_keep else "")
           + f", {seg.inference.smooth.iters} smoothing iterations")
     print(evaluate.format_table(summary))
@@ -257,7 +260,8 @@ def cmd_export(args) -> int:
     inference = settings.resolve(InferenceConfig(), args)
     also = {Path(f).stem: settings.apply(InferenceConfig(), settings.read_params_file(f))
             for f in args.also_profile or []}
-    card = export_model(args.checkpoint, args.data, args.name, args.out or Path("models") / args.name,
+    card = export_model(args.checkpoint, args.data, args.name,
+                        args.out or Path("models") / args.name,
                         inference=inference, half=not args.no_half, frames=args.frames,
                         notes=args.config_name or "", sample_bag=args.sample_bag, also=also)
     print(f"exported {args.name}: tau {card['tau']:.3f}, {card['precision']}, refine steps "
@@ -281,8 +285,8 @@ def _export_label_free(args) -> int:
     if args.frames < 1:
         raise ValueError(f"--frames {args.frames} invalid; valid: >= 1")
     # the checkpoint's own settings (an exported model.pt has them), then the flags
-    inference = settings.resolve(InferenceConfig.from_dict(load(args.checkpoint).get("inference", {})),
-                                 args)
+    stored = load(args.checkpoint).get("inference", {})
+    inference = settings.resolve(InferenceConfig.from_dict(stored), args)
     out = args.out or Path("models") / args.name
     if args.bag:
         card = export_from_bag(args.checkpoint, args.bag, args.name, out, args.topic,
@@ -332,7 +336,8 @@ def cmd_bench_sim(args) -> int:
     r = benchmark.run(_scene_config(args), scenes=args.scenes, workers=args.workers)
     print(f"simulator benchmark: {r['instances']} x {r['object']} at {r['resolution']}, "
           f"{r['scenes']} scenes")
-    print(f"  one core : {r['one_core_scenes_per_s']:7.1f} scenes/s  ({r['ms_per_scene']:.1f} ms/scene:"
+    print(f"  one core : {r['one_core_scenes_per_s']:7.1f} scenes/s  "
+          f"({r['ms_per_scene']:.1f} ms/scene:"
           f" physics {r['ms_physics']:.1f} ms, render {r['ms_render']:.1f} ms)")
     if "workers" in r:
         print(f"  {r['workers']} workers: {r['parallel_scenes_per_s']:7.1f} scenes/s  "
@@ -478,7 +483,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--min-height", type=float, default=0.006, help="metres above the floor")
     p.add_argument("--max-height", type=float, default=0.05, help="metres mapped to +1")
     p.add_argument("--config", default="cpu_spheres",
-                   help="named config: cpu_spheres (default), cpu, cpu_fast, paper_cpu, paper")
+                   help="named config: cpu_spheres (default), cpu_convex, cpu, paper_cpu, paper")
     p.add_argument("--out", type=Path, required=True, help="run directory")
     p.add_argument("--minutes", type=float, help="wall-clock budget")
     p.add_argument("--iterations", type=int, help="iteration budget")
@@ -491,7 +496,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rotate", action="store_true", help="augment with +-20 degree rotations")
     p.add_argument("--r1-gamma", type=float, help="R1 penalty weight on real frames")
     p.add_argument("--spectral-norm", action="store_true", help="in the discriminator")
-    p.add_argument("--renderer", choices=["learned", "projection", "spheres"])
+    p.add_argument("--renderer", choices=["learned", "spheres", "convex"])
     p.add_argument("--lr-template", type=float, help="learning rate of an explicit template")
     p.add_argument("--compactness", type=float, help="weight of the template compactness prior")
     p.add_argument("--coord-conv", action="store_true", help="encoder sees pixel coordinates")

@@ -40,12 +40,18 @@ from .sim.scene import SceneConfig
 # ------------------------------------------------------------------------------ loading
 def sim_preprocess_config(meta_or_root, **overrides) -> PreprocessConfig:
     """The preprocessing of a simulated data set (a meta dict, or the data set's directory):
-    `roi` from the camera and bin of its scene config, `floor_depth` = the camera's mount
-    height; any PreprocessConfig field can be overridden (roi=None finds the bin per frame)."""
+    `roi` from the camera and bin of its scene config, and the floor: `floor_depth` = the
+    camera's mount height when it looks straight down, else the floor plane it sees; any
+    PreprocessConfig field can be overridden (roi=None finds the bin per frame)."""
     meta = meta_or_root if isinstance(meta_or_root, dict) else load_meta(meta_or_root)
     scene = SceneConfig.from_dict(meta["scene"])
-    fields = {"roi": roi_from_camera(scene.camera, scene.bin),
-              "floor_depth": scene.camera.mount_height}
+    cam = scene.camera
+    level = cam.tilt == 0  # a roll about the optical axis keeps every floor pixel at one depth
+    fields = {"roi": roi_from_camera(cam, scene.bin),
+              "floor_depth": cam.mount_height if level else None,
+              "floor_plane": None if level else tuple(cam.floor_plane())}
+    if "floor_depth" in overrides or "floor_plane" in overrides:  # the caller's floor only
+        fields.update(floor_depth=None, floor_plane=None)
     unknown = set(overrides) - set(PreprocessConfig.__dataclass_fields__)
     if unknown:
         raise ValueError(f"unknown preprocessing keys {sorted(unknown)}; valid: "

@@ -28,7 +28,8 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 
-RENDERERS = ("learned", "projection", "spheres", "convex")
+RENDERERS = ("learned", "spheres", "convex")
+RETIRED_FIELDS = ("template_size",)  # ModelConfig fields that old checkpoints may hold
 
 
 @dataclass(frozen=True)
@@ -44,8 +45,7 @@ class ModelConfig:
     spectral_norm: bool = False  # spectral normalisation in the discriminator
     zbuffer_temperature: float = 0.05  # training composite: softmax(d_i / T)-weighted depths
     render_bias: float = 0.0  # initial bias of the renderer's last layer (-2.5: floor prior)
-    renderer: str = "learned"  # "learned" (paper: 3D convs + 2D decoder) or "projection"
-    template_size: int = 32  # side of the occupancy template ("projection" renderer)
+    renderer: str = "learned"  # "learned" (paper: 3D convs + 2D decoder), "spheres", "convex"
     spheres: int = 6  # spheres on the template rod ("spheres" renderer)
     coord_conv: bool = False  # the encoder also sees pixel coordinates (CoordConv)
     radius_profile: str = "free"  # rod radii: "free" (each in 0.5-1 x the largest) or
@@ -60,7 +60,8 @@ class ModelConfig:
 
     def __post_init__(self):
         if self.image_size != 64:
-            raise ValueError(f"image_size must be 64 (the architecture's size), got {self.image_size}")
+            raise ValueError("image_size must be 64 (the architecture's size), got "
+                             f"{self.image_size}")
         if self.nf < 8 or self.nf % 8:
             raise ValueError(f"nf must be a multiple of 8 and >= 8, got {self.nf}")
         if self.encoder_nf != 0 and (self.encoder_nf < 8 or self.encoder_nf % 8):
@@ -81,7 +82,8 @@ class ModelConfig:
             raise ValueError(f"the {self.renderer} renderer has no features to average: use "
                              "composite='zbuffer'")
         if self.radius_profile not in ("free", "monotone"):
-            raise ValueError(f"radius_profile {self.radius_profile!r} invalid; valid: free, monotone")
+            raise ValueError(f"radius_profile {self.radius_profile!r} invalid; valid: free, "
+                             "monotone")
         if not 1 <= self.spheres <= 256:
             raise ValueError(f"spheres must be in 1..256, got {self.spheres}")
         if not 1 <= self.pieces <= 16:
@@ -95,6 +97,12 @@ class ModelConfig:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+    @staticmethod
+    def from_dict(d: dict) -> "ModelConfig":
+        """From a checkpoint's record; fields of retired experiments (the occupancy-grid
+        template's `template_size`) are ignored."""
+        return ModelConfig(**{k: v for k, v in d.items() if k not in RETIRED_FIELDS})
 
 
 def init_weights(module: nn.Module) -> None:
@@ -167,33 +175,20 @@ class ResBlock3d(nn.Module):
         return self.body(x) + self.bypass(x)
 
 
-class Generator(nn.Module):
+class PoseGenerator(nn.Module):
+    """What every generator shares: codes z_i -> poses (the pose decoder G_p, its initial
+    spread), single-instance renders z-buffered into a scene. Subclasses render."""
+
     template_parameters: tuple[str, ...] = ()  # explicit template: its own learning rate
 
     def __init__(self, cfg: ModelConfig):
         super().__init__()
         self.cfg = cfg
-        d, nf = cfg.latent_dim, cfg.nf
-        self.pose = pose_decoder(d)
-        self.template = nn.Parameter(torch.randn(1, nf, 4, 4, 4))
-        self.template_net = nn.Sequential(
-            ResBlock3d(nf, nf // 2), nn.Upsample(scale_factor=2, mode="nearest"),
-            nn.InstanceNorm3d(nf // 2, affine=True),
-            ResBlock3d(nf // 2, nf // 4), nn.Upsample(scale_factor=2, mode="nearest"),
-            nn.InstanceNorm3d(nf // 4, affine=True))
-        self.feature3d = nn.Sequential(
-            nn.Conv3d(nf // 4, nf // 8, 3, 1, 1), nn.InstanceNorm3d(nf // 8, affine=True), nn.ReLU(),
-            nn.Conv3d(nf // 8, nf // 8, 3, 1, 1), nn.InstanceNorm3d(nf // 8, affine=True), nn.ReLU())
-        self.feature2d = nn.Sequential(
-            nn.Conv2d(nf // 8 * 16, 2 * nf, 3, 1, 1), nn.InstanceNorm2d(2 * nf, affine=True), nn.ReLU())
-        self.renderer = nn.Sequential(
-            nn.ConvTranspose2d(2 * nf, nf, 4, 2, 1), nn.InstanceNorm2d(nf, affine=True), nn.ReLU(),
-            nn.ConvTranspose2d(nf, 1, 4, 2, 1), nn.Tanh())
-        init_weights(self)
-        self._spread_poses()
-        # floor prior: every single-instance render starts out as bin floor (tanh(-2.5) = -0.99),
-        # so the composite's background is right from the start and only objects must be learned
-        nn.init.constant_(self.renderer[-2].bias, cfg.render_bias)
+        self.pose = pose_decoder(cfg.latent_dim)
+
+    def render_instances(self, z: torch.Tensor) -> torch.Tensor:
+        """(B, n, d) codes -> (B, n, 64, 64): every instance rendered alone."""
+        raise NotImplementedError
 
     @torch.no_grad()
     def _spread_poses(self) -> None:
@@ -217,6 +212,47 @@ class Generator(nn.Module):
         """(B, n, d) codes -> what the encoder's alignment loss L_a compares: the codes
         themselves (the paper)."""
         return z
+
+    def zbuffer(self, singles: torch.Tensor) -> torch.Tensor:
+        """(B, n, H, W) single-instance renders -> (B, 1, H, W): per pixel the nearest surface
+        (largest height) wins. In training a soft max, so that every instance gets gradient,
+        weighted by how near it is; where all renders agree (background) it equals them."""
+        if self.training and self.cfg.zbuffer_temperature > 0:
+            w = torch.softmax(singles / self.cfg.zbuffer_temperature, dim=1)
+            return (w * singles).sum(dim=1, keepdim=True)
+        return singles.amax(dim=1, keepdim=True)
+
+
+class Generator(PoseGenerator):
+    """The paper's generator: a learned implicit 3D template posed by a spatial transformer,
+    3D and 2D convolutions, a learned depth renderer; instance features averaged (the paper)
+    or each instance rendered and z-buffered."""
+
+    def __init__(self, cfg: ModelConfig):
+        super().__init__(cfg)
+        nf = cfg.nf
+        self.template = nn.Parameter(torch.randn(1, nf, 4, 4, 4))
+        self.template_net = nn.Sequential(
+            ResBlock3d(nf, nf // 2), nn.Upsample(scale_factor=2, mode="nearest"),
+            nn.InstanceNorm3d(nf // 2, affine=True),
+            ResBlock3d(nf // 2, nf // 4), nn.Upsample(scale_factor=2, mode="nearest"),
+            nn.InstanceNorm3d(nf // 4, affine=True))
+        self.feature3d = nn.Sequential(
+            nn.Conv3d(nf // 4, nf // 8, 3, 1, 1), nn.InstanceNorm3d(nf // 8, affine=True),
+            nn.ReLU(),
+            nn.Conv3d(nf // 8, nf // 8, 3, 1, 1), nn.InstanceNorm3d(nf // 8, affine=True),
+            nn.ReLU())
+        self.feature2d = nn.Sequential(
+            nn.Conv2d(nf // 8 * 16, 2 * nf, 3, 1, 1), nn.InstanceNorm2d(2 * nf, affine=True),
+            nn.ReLU())
+        self.renderer = nn.Sequential(
+            nn.ConvTranspose2d(2 * nf, nf, 4, 2, 1), nn.InstanceNorm2d(nf, affine=True), nn.ReLU(),
+            nn.ConvTranspose2d(nf, 1, 4, 2, 1), nn.Tanh())
+        init_weights(self)
+        self._spread_poses()
+        # floor prior: every single-instance render starts out as bin floor (tanh(-2.5) = -0.99),
+        # so the composite's background is right from the start and only objects must be learned
+        nn.init.constant_(self.renderer[-2].bias, cfg.render_bias)
 
     def instance_features(self, z: torch.Tensor) -> torch.Tensor:
         """(B, n, d) codes -> (B, n, 2nf, 16, 16) single-instance feature maps F(z_i)."""
@@ -254,67 +290,57 @@ class Generator(nn.Module):
             x = self.zbuffer(self._render_each(f))
         return (x, mean_f) if return_features else x
 
-    def zbuffer(self, singles: torch.Tensor) -> torch.Tensor:
-        """(B, n, H, W) single-instance renders -> (B, 1, H, W): per pixel the nearest surface
-        (largest height) wins. In training a soft max, so that every instance gets gradient,
-        weighted by how near it is; where all renders agree (background) it equals them."""
-        if self.training and self.cfg.zbuffer_temperature > 0:
-            w = torch.softmax(singles / self.cfg.zbuffer_temperature, dim=1)
-            return (w * singles).sum(dim=1, keepdim=True)
-        return singles.amax(dim=1, keepdim=True)
 
-
-class ProjectionGenerator(Generator):
-    """A faster generator: an explicit occupancy template, posed by the same STN and rendered by
-    a fixed projection (per pixel the highest occupied level), instances z-buffered.
-
-    No 3D or 2D convolutions: an instance costs one trilinear resampling of an S^3 volume, so an
-    iteration is several times cheaper than the paper's generator on a CPU. Each instance is a
-    rigid copy of one shape by construction. The occupancy starts as a ball of radius 0.3 (grid
-    units; the 64 x 64 image spans [-1, 1]); the volume's z axis is height above the floor.
-    """
-
-    template_parameters = ("occupancy",)
+class TemplateGenerator(PoseGenerator):
+    """Generators with an explicit template whose top-down height map is closed form: each
+    instance is rendered alone from its pose (`render_poses`) and the scene z-buffered, in
+    training as at test time; test-time pose fitting (`refine.py`) moves their poses.
+    Units: the 64 x 64 image spans [-1, 1] in x and y, heights use the same unit (so rotations
+    are rigid) and 2 / height_gain of them map to +1."""
 
     def __init__(self, cfg: ModelConfig):
-        nn.Module.__init__(self)
-        self.cfg = cfg
-        d, S = cfg.latent_dim, cfg.template_size
-        self.pose = pose_decoder(d)
+        super().__init__(cfg)
         init_weights(self)
         self._spread_poses()
-        r = torch.linspace(-1, 1, S)
-        zz, yy, xx = torch.meshgrid(r, r, r, indexing="ij")
-        dist = (xx ** 2 + yy ** 2 + zz ** 2).sqrt()
-        self.occupancy = nn.Parameter(((0.3 - dist) * 10).clamp(-3, 3)[None, None])
-        self.register_buffer("levels", (torch.arange(S // 2) / (S // 2 - 1)).view(1, S // 2, 1, 1))
+        size = cfg.image_size
+        r = (torch.arange(size) + 0.5) / size * 2 - 1
+        self.register_buffer("px", r.view(1, 1, 1, size), persistent=False)
+        self.register_buffer("py", r.view(1, 1, size, 1), persistent=False)
+
+    def geometry(self):
+        """The template in its own frame (what `render_poses` takes as `template`): computed
+        once while only the poses move."""
+        raise NotImplementedError
+
+    def render_poses(self, pose: torch.Tensor, size: int | None = None,
+                     template=None) -> torch.Tensor:
+        """(B, n, 6) poses (axis-angle rotation, translation) -> (B, n, size, size) renders."""
+        raise NotImplementedError
 
     def template_spread(self) -> torch.Tensor:
-        """Mean of occupancy x squared distance from the template centre (a compactness prior)."""
-        S = self.cfg.template_size
-        r = torch.linspace(-1, 1, S, device=self.occupancy.device)
-        r2 = r.view(S, 1, 1) ** 2 + r.view(1, S, 1) ** 2 + r.view(1, 1, S) ** 2
-        return (torch.sigmoid(self.occupancy)[0, 0] * r2).mean()
+        """A compactness measure of the template (its prior in training)."""
+        raise NotImplementedError
 
-    def render_instances(self, z: torch.Tensor) -> torch.Tensor:
+    def pixel_grid(self, size: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """-> pixel centres x (1, 1, 1, size) and y (1, 1, size, 1) in [-1, 1]."""
+        if size is None or size == self.cfg.image_size:
+            return self.px, self.py
+        g = (torch.arange(size, device=self.px.device, dtype=self.px.dtype) + 0.5) / size * 2 - 1
+        return g.view(1, 1, 1, size), g.view(1, 1, size, 1)
+
+    def render_instances(self, z: torch.Tensor, size: int | None = None) -> torch.Tensor:
+        """(B, n, d) codes -> (B, n, size, size) single-instance renders (default image_size;
+        a smaller size renders the same scene coarser, for cheap test-time refinement)."""
         B, n, d = z.shape
-        S, size = self.cfg.template_size, self.cfg.image_size
-        theta = self.poses(z.reshape(B * n, d))
-        # sampled at half the depth resolution: the projection needs heights, not detail
-        grid = F.affine_grid(theta, [B * n, 1, S // 2, S, S], align_corners=True)
-        occ = torch.sigmoid(self.occupancy).expand(B * n, -1, -1, -1, -1)
-        occ = F.grid_sample(occ, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
-        h = (occ[:, 0] * self.levels).amax(dim=1, keepdim=True)  # (M, 1, S, S) in [0, 1]
-        h = F.interpolate(h, size=(size, size), mode="bilinear", align_corners=False)
-        x = (h * self.cfg.height_gain).clamp(0, 1) * 2 - 1
-        return x.reshape(B, n, size, size)
+        return self.render_poses(self.pose(z.reshape(B * n, d)).reshape(B, n, 6), size)
 
     def forward(self, z: torch.Tensor, return_features: bool = False):
+        """(B, n, d) codes -> (B, 1, 64, 64) z-buffered composite (no features to average)."""
         x = self.zbuffer(self.render_instances(z))
         return (x, None) if return_features else x
 
 
-class SphereGenerator(Generator):
+class SphereGenerator(TemplateGenerator):
     """The fastest generator, and the crispest: the template is a rod of K overlapping spheres
     on one axis, with a learned length and learned radii (a solid of revolution), and its
     height map seen from above is closed-form.
@@ -336,19 +362,12 @@ class SphereGenerator(Generator):
     template_parameters = ("log_radius", "radius_shape", "length", "lift")
 
     def __init__(self, cfg: ModelConfig):
-        nn.Module.__init__(self)
-        self.cfg = cfg
-        self.pose = pose_decoder(cfg.latent_dim)
-        init_weights(self)
-        self._spread_poses()
+        super().__init__(cfg)
         self.log_radius = nn.Parameter(torch.tensor(math.log(0.2)))
-        self.radius_shape = nn.Parameter(torch.full((cfg.spheres,), 2.0 if cfg.radius_profile == "free" else 4.0))
+        self.radius_shape = nn.Parameter(
+            torch.full((cfg.spheres,), 2.0 if cfg.radius_profile == "free" else 4.0))
         self.length = nn.Parameter(torch.tensor(0.2))  # axis length (centre to centre)
         self.lift = nn.Parameter(torch.tensor(0.2))  # height of the axis above the floor
-        size = cfg.image_size
-        r = (torch.arange(size) + 0.5) / size * 2 - 1
-        self.register_buffer("px", r.view(1, 1, 1, size), persistent=False)
-        self.register_buffer("py", r.view(1, 1, size, 1), persistent=False)
 
     def spheres(self) -> tuple[torch.Tensor, torch.Tensor]:
         """-> centres (K, 3) about the rod's middle, radii (K,): the template in its own frame."""
@@ -364,6 +383,9 @@ class SphereGenerator(Generator):
         centres = torch.stack([t * length, torch.zeros_like(t), torch.zeros_like(t)], dim=1)
         return centres, radii
 
+    def geometry(self) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.spheres()
+
     def template_spread(self) -> torch.Tensor:
         """Mean squared distance of the sphere centres from their mean (a compactness prior)."""
         c, _ = self.spheres()
@@ -377,12 +399,6 @@ class SphereGenerator(Generator):
         B, n, d = z.shape
         return pose_features(self.poses(z.reshape(B * n, d))).reshape(B, n, 9)
 
-    def render_instances(self, z: torch.Tensor, size: int | None = None) -> torch.Tensor:
-        """(B, n, d) -> (B, n, size, size) single-instance renders (default: image_size; a
-        smaller size renders the same scene coarser, for cheap test-time refinement)."""
-        B, n, d = z.shape
-        return self.render_poses(self.pose(z.reshape(B * n, d)).reshape(B, n, 6), size)
-
     def render_poses(self, pose: torch.Tensor, size: int | None = None,
                      template: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
         """(B, n, 6) poses (axis-angle rotation, translation: what the pose decoder outputs)
@@ -391,13 +407,6 @@ class SphereGenerator(Generator):
         B, n = pose.shape[:2]
         axis = rodrigues(pose.reshape(B * n, 6)[:, :3])[:, :, 0].reshape(B, n, 3)
         return self.render_axes(axis, pose[..., 3:], size, template)
-
-    def pixel_grid(self, size: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """-> pixel centres x (1, 1, 1, size) and y (1, 1, size, 1) in [-1, 1]."""
-        if size is None or size == self.cfg.image_size:
-            return self.px, self.py
-        g = (torch.arange(size, device=self.px.device, dtype=self.px.dtype) + 0.5) / size * 2 - 1
-        return g.view(1, 1, 1, size), g.view(1, 1, size, 1)
 
     def render_axes(self, axis: torch.Tensor, t: torch.Tensor, size: int | None = None,
                     template: tuple[torch.Tensor, torch.Tensor] | None = None,
@@ -423,10 +432,6 @@ class SphereGenerator(Generator):
         x = (h * (self.cfg.height_gain / 2)).clamp(0, 1) * 2 - 1
         return x.reshape(B, n, *x.shape[1:])
 
-    def forward(self, z: torch.Tensor, return_features: bool = False):
-        x = self.zbuffer(self.render_instances(z))
-        return (x, None) if return_features else x
-
 
 CONVEX_MIN_EXTENT = 0.03  # image half-widths (about a pixel): every piece holds a ball this big
 CONVEX_MAX_TILT = 0.6  # a normal leans at most asin(0.6) = 37 degrees from its prism direction
@@ -436,7 +441,7 @@ def _softplus_inverse(y: torch.Tensor) -> torch.Tensor:
     return y + torch.log(-torch.expm1(-y))
 
 
-class ConvexGenerator(Generator):
+class ConvexGenerator(TemplateGenerator):
     """A template for any rigid part: a union of K convex pieces, each the intersection of a
     top, a bottom and `walls` side half-spaces, with the exact closed-form height map of
     `template.height_map` (smooth for gradients), pieces and instances z-buffered by max.
@@ -465,11 +470,7 @@ class ConvexGenerator(Generator):
         """The pose decoder as the others', the template as one default box (`init_box`)."""
         from .template import prism_normals
 
-        nn.Module.__init__(self)
-        self.cfg = cfg
-        self.pose = pose_decoder(cfg.latent_dim)
-        init_weights(self)
-        self._spread_poses()
+        super().__init__(cfg)
         K, P = cfg.pieces, cfg.walls + 2
         self.register_buffer("base", prism_normals(cfg.walls), persistent=False)  # (P, 3)
         self.centre = nn.Parameter(torch.zeros(K, 3))
@@ -477,12 +478,6 @@ class ConvexGenerator(Generator):
         self.tilt = nn.Parameter(torch.zeros(K, P, 3))
         self.extent = nn.Parameter(torch.zeros(K, P))
         self.init_box((0.25, 0.15, 0.1))
-        size = cfg.image_size
-        r = (torch.arange(size) + 0.5) / size * 2 - 1
-        self.register_buffer("px", r.view(1, 1, 1, size), persistent=False)
-        self.register_buffer("py", r.view(1, 1, size, 1), persistent=False)
-
-    pixel_grid = SphereGenerator.pixel_grid
 
     @torch.no_grad()
     def init_box(self, half: tuple[float, float, float], jitter: float = 0.01) -> None:
@@ -528,6 +523,9 @@ class ConvexGenerator(Generator):
         d = reach + CONVEX_MIN_EXTENT + F.softplus(self.extent)
         return n, d + (n * self.centre[:, None]).sum(-1)
 
+    def geometry(self) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.halfspaces()
+
     def template_spread(self) -> torch.Tensor:
         """Mean squared distance of the piece centres from their mean (a compactness prior)."""
         return ((self.centre - self.centre.mean(0)) ** 2).sum(1).mean()
@@ -542,11 +540,6 @@ class ConvexGenerator(Generator):
         i, j = torch.triu_indices(3, 3)
         outer = (cols[..., :, None] * cols[..., None, :])[..., i, j]  # (M, 3, 6)
         return torch.cat([p[:, 3:], outer.flatten(1)], 1).reshape(B, n, 21)
-
-    def render_instances(self, z: torch.Tensor, size: int | None = None) -> torch.Tensor:
-        """(B, n, d) codes -> (B, n, size, size) single-instance renders (default image_size)."""
-        B, n, d = z.shape
-        return self.render_poses(self.pose(z.reshape(B * n, d)).reshape(B, n, 6), size)
 
     def render_poses(self, pose: torch.Tensor, size: int | None = None,
                      template: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
@@ -564,24 +557,22 @@ class ConvexGenerator(Generator):
         x = (h * (self.cfg.height_gain / 2)).clamp(0, 1) * 2 - 1
         return x.reshape(B, n, *x.shape[1:])
 
-    def forward(self, z: torch.Tensor, return_features: bool = False):
-        """(B, n, d) codes -> (B, 1, 64, 64) z-buffered composite (no features to average)."""
-        x = self.zbuffer(self.render_instances(z))
-        return (x, None) if return_features else x
-
 
 def make_generator(cfg: ModelConfig) -> Generator:
     """The generator that `cfg.renderer` names."""
-    return {"projection": ProjectionGenerator, "spheres": SphereGenerator,
+    return {"spheres": SphereGenerator,
             "convex": ConvexGenerator}.get(cfg.renderer, Generator)(cfg)
 
 
 def _trunk(nf: int, sn: bool = False) -> list[nn.Module]:
     wrap = nn.utils.spectral_norm if sn else (lambda m: m)
     return [wrap(nn.Conv2d(1, nf, 4, 2, 1)), nn.LeakyReLU(0.2),
-            wrap(nn.Conv2d(nf, 2 * nf, 4, 2, 1)), nn.InstanceNorm2d(2 * nf, affine=True), nn.LeakyReLU(0.2),
-            wrap(nn.Conv2d(2 * nf, 4 * nf, 4, 2, 1)), nn.InstanceNorm2d(4 * nf, affine=True), nn.LeakyReLU(0.2),
-            wrap(nn.Conv2d(4 * nf, 8 * nf, 4, 2, 1)), nn.InstanceNorm2d(8 * nf, affine=True), nn.LeakyReLU(0.2)]
+            wrap(nn.Conv2d(nf, 2 * nf, 4, 2, 1)), nn.InstanceNorm2d(2 * nf, affine=True),
+            nn.LeakyReLU(0.2),
+            wrap(nn.Conv2d(2 * nf, 4 * nf, 4, 2, 1)), nn.InstanceNorm2d(4 * nf, affine=True),
+            nn.LeakyReLU(0.2),
+            wrap(nn.Conv2d(4 * nf, 8 * nf, 4, 2, 1)), nn.InstanceNorm2d(8 * nf, affine=True),
+            nn.LeakyReLU(0.2)]
 
 
 class Discriminator(nn.Module):
@@ -608,7 +599,8 @@ class Encoder(nn.Module):
             grid = torch.stack(torch.meshgrid(r, r, indexing="xy"))[None]
             self.register_buffer("coords", grid, persistent=False)
         self.derender = nn.Sequential(*layers[:5])  # -> (2nf, 16, 16), compared with mean F
-        self.head = nn.Sequential(*layers[5:], nn.Conv2d(8 * nf, cfg.n_instances * cfg.latent_dim, 4, 1, 0))
+        self.head = nn.Sequential(*layers[5:],
+                                  nn.Conv2d(8 * nf, cfg.n_instances * cfg.latent_dim, 4, 1, 0))
         init_weights(self)
 
     def forward(self, x: torch.Tensor, return_features: bool = False):

@@ -81,8 +81,8 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, inference=None,
     keep["inference"] = seg.inference.to_dict()
     precision, val_half = "float32", None
     if half:
-        G16 = {k: v.half().float() if v.is_floating_point() else v for k, v in keep["generator"].items()}
-        E16 = {k: v.half().float() if v.is_floating_point() else v for k, v in keep["encoder"].items()}
+        G16, E16 = ({k: v.half().float() if v.is_floating_point() else v
+                     for k, v in keep[key].items()} for key in ("generator", "encoder"))
         seg.G.load_state_dict(G16)
         seg.E.load_state_dict(E16)
         seg.encoder_changed()
@@ -90,7 +90,8 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, inference=None,
         if abs(val_half - val_full) < HALF_TOLERANCE:
             precision = "float16"
             for key in ("generator", "encoder"):
-                keep[key] = {k: v.half() if v.is_floating_point() else v for k, v in keep[key].items()}
+                keep[key] = {k: v.half() if v.is_floating_point() else v
+                             for k, v in keep[key].items()}
         else:
             seg.G.load_state_dict({k: v.float() for k, v in state["generator"].items()})
             seg.E.load_state_dict({k: v.float() for k, v in state["encoder"].items()})
@@ -121,11 +122,13 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, inference=None,
         "train_config": tcfg, "iterations": state["iteration"],
         "wall_minutes": round(state["elapsed_seconds"] / 60, 1),
         "hardware": f"{platform.machine()} CPU, {os.cpu_count()} cores (torch threads: 1)",
-        "tau": tau, "refine_steps": inference.refine_steps, "hypotheses": inference.refine_hypotheses,
+        "tau": tau, "refine_steps": inference.refine_steps,
+        "hypotheses": inference.refine_hypotheses,
         "smooth_iters": inference.smooth.iters, "keep": inference.refine_keep,
         "full_res_smooth_iters": inference.smooth.full_res_active,
         "inference": inference.to_dict(),
-        # what "auto" meant here: the model tests measure in it, whatever their CPU computes natively
+        # what "auto" meant here: the model tests measure in it, whatever their CPU computes
+        # natively
         "encoder_precision": seg.resolve_precision(inference.encoder_precision),
         "also": {k: v.to_dict() for k, v in (also or {}).items()},
         "distillation": _distill_record(state),
@@ -333,7 +336,7 @@ def label_free_markdown(card: dict) -> str:
 
 
 def sample_bag_scores(seg, bag_name: str) -> dict:
-    """InSeGAN (as shipped) and K-Means on the frames of a shipped sample bag, at 64 x 64, and
+    """Scores of InSeGAN (as shipped) and K-Means on a shipped sample bag's frames, at 64 x 64, and
     at the bag's full resolution as the segmenter node runs by default: what the model and node
     tests check again."""
     from . import data as data_mod
@@ -352,7 +355,7 @@ def sample_bag_scores(seg, bag_name: str) -> dict:
 
 
 def full_resolution_scores(seg, bag_path) -> dict:
-    """InSeGAN and K-Means at the bag's own resolution, scored against its ground truth.
+    """Scores of InSeGAN and K-Means at the bag's own resolution, against its ground truth.
 
     InSeGAN as the segmenter node runs with its defaults (bin region found in the first frame,
     floor depth estimated per frame), labels mapped back to every input pixel and carried onto
@@ -390,7 +393,8 @@ def _settings_text(d: dict) -> str:
         keep = f", the best-fitting {cfg.refine_keep} refined" if cfg.refine_keep else ""
         start = (f"{cfg.refine_steps} refinement iterations from {cfg.refine_hypotheses} starting "
                  f"point(s){keep}")
-    precision = "" if cfg.encoder_precision == "float32" else f", encoder in {cfg.encoder_precision}"
+    precision = ("" if cfg.encoder_precision == "float32"
+                 else f", encoder in {cfg.encoder_precision}")
     return (f"{start}, {smooth.iters} smoothing iterations + {smooth.full_res_active} at full "
             f"resolution{precision}")
 
@@ -457,7 +461,8 @@ def card_markdown(card: dict) -> str:
         f"* **Inference:** tau {card['tau']:.3f} (calibrated on the 200 validation scenes), "
         + _settings_text(card["inference"]) + f", weights stored in {card['precision']} "
         f"(validation mIoU float32 {card['val_miou']['float32']:.4f}"
-        + (f", float16 {card['val_miou']['float16']:.4f}" if card['val_miou']['float16'] is not None else "")
+        + (f", float16 {card['val_miou']['float16']:.4f}"
+           if card['val_miou']['float16'] is not None else "")
         + ")", "",
         "## Test split (held-out scenes)", "",
         format_table(card["test"]), "",

@@ -1,6 +1,6 @@
 """Metric depth frame -> the model's input: a size x size height map in [-1, 1], floor at -1.
 
-The model (DESIGN.md, "Model") sees 64 x 64 images in which the bin floor and everything that is
+The model (model.py) sees 64 x 64 images in which the bin floor and everything that is
 not an object is exactly -1 and objects rise towards +1. This module makes that image from any
 depth frame, simulated or from a camera, always the same way (the paper's real-data recipe):
 
@@ -476,22 +476,38 @@ def _find_bin(d: np.ndarray, valid: np.ndarray, tolerance: float | None) -> BinR
         - small - np.float32(level)
     height[~ok] = np.nan
     inside, top = _interior(height, region, missing, outside)
+    pad = (step - 1) / 2.0  # a grid pixel stands for step x step full-resolution ones
     if inside is None:  # no walls around the floor: its own outline
         hull = cv2.convexHull(np.stack(np.nonzero(region)[::-1], 1).astype(np.int32))[:, 0]
+        hull = hull * step + pad  # full-resolution pixels
     else:  # the inside's outline, each side moved in onto the floor (the walls' inner faces)
-        on_floor = cv2.morphologyEx((np.abs(np.nan_to_num(height, nan=1.0)) <= tol)
-                                    .view(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
-        floor_pts = np.stack(np.nonzero(on_floor.view(bool) & inside)[::-1], 1).astype(float)
         outline = cv2.convexHull(np.stack(np.nonzero(inside)[::-1], 1).astype(np.int32))
         # the rim's four sides, without the bumps of objects that lean over it
         outline = cv2.approxPolyDP(outline, 0.03 * cv2.arcLength(outline, True),
                                    True)[:, 0].astype(float)
         outline = _refit_sides(outline, inside)
         faces = _faces(outline, inside, height, top)
+        # the floor seen inside, at full resolution, places the sides to the pixel
+        full_in = cv2.resize(inside.view(np.uint8), (small.shape[1] * step,
+                                                     small.shape[0] * step),
+                             interpolation=cv2.INTER_NEAREST)[:h, :w]
+        if step > 1:
+            full_in = cv2.dilate(full_in, np.ones((step + 1, step + 1), np.uint8))
+        rows, cols = np.nonzero(full_in)
+        x0, y0, x1, y1 = cols.min(), rows.min(), cols.max() + 1, rows.max() + 1
+        crop, cok = d[y0:y1, x0:x1], valid[y0:y1, x0:x1]
+        on_floor = region_level(crop, plane, x0, y0, level, tol) & cok & full_in[y0:y1, x0:x1] \
+            .view(bool)
+        on_floor = cv2.morphologyEx(on_floor.view(np.uint8), cv2.MORPH_OPEN,
+                                    np.ones((3, 3), np.uint8)).view(bool)
+        floor_pts = np.stack(np.nonzero(on_floor)[::-1], 1).astype(float) + (x0, y0)
+        outline = outline * step + pad
+        faces = [None if f is None else f * step for f in faces]
         hull = _tighten(outline, floor_pts, faces) if len(floor_pts) else outline
-    hull = hull * step + (step - 1) / 2.0  # full-resolution pixels
-    hx0, hy0 = max(0, math.floor(hull[:, 0].min())), max(0, math.floor(hull[:, 1].min()))
-    hx1, hy1 = min(w, math.ceil(hull[:, 0].max()) + 1), min(h, math.ceil(hull[:, 1].max()) + 1)
+    # the box: the pixels whose centres lie inside the outline (give or take the grid)
+    lo, hi = hull.min(0) - pad - 1e-6, hull.max(0) + pad + 1e-6
+    hx0, hy0 = max(0, math.ceil(lo[0])), max(0, math.ceil(lo[1]))
+    hx1, hy1 = min(w, math.floor(hi[0]) + 1), min(h, math.floor(hi[1]) + 1)
     return BinRegion(roi=(hx0, hy0, hx1, hy1),
                      polygon=tuple((float(x), float(y)) for x, y in hull), plane=plane)
 

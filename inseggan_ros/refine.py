@@ -273,7 +273,7 @@ def refine_poses(G, pose: torch.Tensor, x: torch.Tensor, steps: int, reseeds: in
     iterations; fitting each rod's axis, with image-gradient Jacobian columns for x, y and yaw,
     halves its cost at the same quality (docs/experiments.md, 2026-11-21). -> (B, n, 6) poses."""
     B, H, n, _ = pose.shape
-    template = G.spheres()  # fixed while the poses move: computed once
+    template = G.geometry()  # fixed while the poses move: computed once
     target = F.adaptive_avg_pool2d(x, size)
     if keep < 0:
         raise ValueError(f"keep must be >= 0 (0 = all), got {keep}")

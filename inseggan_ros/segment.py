@@ -21,6 +21,7 @@ import torch.nn.functional as F
 
 from . import checkpoint
 from .metrics import mean_miou, miou_batch
+from .model import TemplateGenerator
 from .precision import CastEncoder, native_bfloat16
 from .preprocess import (PreprocessConfig, extend_labels, fill_labels_nearest, labels_to_full,
                          prepare)
@@ -57,7 +58,8 @@ def infer(G, E, x: torch.Tensor, filtered: bool | None = None, refine_steps: int
     refinement (`refine_poses` from `start_poses`, also with 0 steps when there are several
     starts to choose from; for the learned renderer `refine` on the codes, from the encoder's
     codes only)."""
-    if hasattr(G, "render_poses") and (refine_steps > 0 or hypotheses > 1):
+    explicit = isinstance(G, TemplateGenerator)
+    if explicit and (refine_steps > 0 or hypotheses > 1):
         # the input and its symmetric images through the encoder in one batch
         pose = refine_poses(G, start_poses(G, E, x, hypotheses), x, refine_steps, keep=keep)
         renders = G.render_poses(pose)
@@ -73,7 +75,7 @@ def infer(G, E, x: torch.Tensor, filtered: bool | None = None, refine_steps: int
         r = renders.reshape(B * n, 1, H, W)
         renders = _gauss(_median3(r)).reshape(B, n, H, W)
     # the explicit templates' composite is the z-buffer of their renders: no second render
-    recon = G.zbuffer(renders) if hasattr(G, "render_poses") and not filtered else G(z)
+    recon = G.zbuffer(renders) if explicit and not filtered else G(z)
     return {"z": z, "renders": renders, "reconstruction": recon}
 
 
@@ -255,5 +257,5 @@ class Segmenter:
         h = (np.clip(recon64, -1, 1) + 1) / 2 * self.prep_cfg.max_height
         h = cv2.resize(h.astype(np.float32), (x1 - x0, y1 - y0), interpolation=cv2.INTER_LINEAR)
         out = np.zeros(shape, np.float32)
-        out[y0:y1, x0:x1] = prep.floor_depth - h
+        out[y0:y1, x0:x1] = prep.floor_at(prep.roi) - h  # a tilted floor is a plane
         return out

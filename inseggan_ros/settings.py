@@ -172,7 +172,8 @@ def add_flags(parser, default: str) -> None:
     """The exposed settings as command-line flags (`default`: what an unset flag means), plus
     --profile, a segmenter parameters file the flags override."""
     parser.add_argument("--profile", type=Path,
-                        help="segmenter parameters file, e.g. config/realtime.yaml " + default)
+                        help="segmenter parameters file: a path, or a shipped one's name "
+                             "(realtime, quality, fastest, d435) " + default)
     for s in exposed():
         parser.add_argument(s.flag, type=s.type, choices=s.choices, default=None,
                             help=f"{s.doc} {default}")
@@ -207,5 +208,10 @@ def read_params_file(path) -> dict:
 
 def resolve(base: InferenceConfig, args) -> InferenceConfig:
     """`base`, then the --profile parameters file, then the explicit flags (`add_flags`)."""
-    params = read_params_file(args.profile) if getattr(args, "profile", None) else {}
+    profile = getattr(args, "profile", None)
+    if profile:
+        from .paths import resolve_config
+
+        profile = resolve_config(str(profile))  # a path, or a shipped file's name ("quality")
+    params = read_params_file(profile) if profile else {}
     return apply(base, {**params, **from_flags(args)})

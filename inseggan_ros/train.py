@@ -3,7 +3,7 @@
     inseggan train --data data/cylinder --out runs/cylinder --minutes 60   (config cpu_spheres)
     torchrun --nproc_per_node 2 -m inseggan_ros.cli train ...        (DistributedDataParallel)
 
-Per iteration (paper Sec. 3 and DESIGN.md):
+Per iteration (the paper, Sec. 3):
   1. D: BCE(D(x_real), 1) + BCE(D(G(Z)), 0), Z ~ N(0, I), n codes per image;
   2. G: BCE(D(G(Z)), 1) (non-saturating);
   3. E, generator frozen: L_a (codes, or for explicit templates the pose features a render
@@ -33,7 +33,7 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from . import checkpoint, losses
-from .model import ModelConfig, build
+from .model import ConvexGenerator, ModelConfig, TemplateGenerator, build
 
 
 @dataclass(frozen=True)
@@ -72,11 +72,13 @@ class TrainConfig:
         if self.batch_size < 2:
             raise ValueError(f"batch_size must be >= 2, got {self.batch_size}")
         if not 1 <= self.recon_levels <= 6:
-            raise ValueError(f"recon_levels must be in 1..6 (64 px down to 2), got {self.recon_levels}")
+            raise ValueError("recon_levels must be in 1..6 (64 px down to 2), got "
+                             f"{self.recon_levels}")
         if self.template_init not in ("data", "default"):
             raise ValueError(f"template_init {self.template_init!r} invalid; valid: data, default")
         if self.matching not in losses.MATCHINGS:
-            raise ValueError(f"matching {self.matching!r} invalid; valid: {', '.join(losses.MATCHINGS)}")
+            raise ValueError(f"matching {self.matching!r} invalid; valid: "
+                             f"{', '.join(losses.MATCHINGS)}")
         for name in ("lr_g", "lr_d", "lr_e"):  # lr_template may be 0 (= lr_g)
             if not 0 < getattr(self, name) < 1:
                 raise ValueError(f"{name} must be in (0, 1), got {getattr(self, name)}")
@@ -87,7 +89,7 @@ class TrainConfig:
     @staticmethod
     def from_dict(d: dict) -> "TrainConfig":
         d = dict(d)
-        d["model"] = ModelConfig(**d["model"])
+        d["model"] = ModelConfig.from_dict(d["model"])
         d["betas"] = tuple(d["betas"])
         return TrainConfig(**d)
 
@@ -95,13 +97,8 @@ class TrainConfig:
 CONFIGS: dict[str, TrainConfig] = {
     # The paper's full recipe, for a GPU: nf = 64, batch 128, features averaged before rendering.
     "paper": TrainConfig(model=ModelConfig(nf=64, composite="average"), batch_size=128),
-    # The paper's recipe scaled to a CPU (the prototype DESIGN.md describes).
+    # The paper's recipe scaled to a CPU: nf = 32, batch 64.
     "paper_cpu": TrainConfig(model=ModelConfig(nf=32, composite="average"), batch_size=64),
-    # A fast generator for a CPU: explicit occupancy template + fixed projection renderer.
-    "cpu_fast": TrainConfig(model=ModelConfig(nf=32, latent_dim=16, composite="zbuffer",
-                                              renderer="projection", spectral_norm=True),
-                            batch_size=32, lambda_real=1.0, real_trains_generator=True,
-                            r1_gamma=10.0, lr_template=0.02, compactness=1.0),
     # The default: a rod of learned spheres, height maps in closed form (docs/experiments.md).
     "cpu_spheres": TrainConfig(model=ModelConfig(nf=32, latent_dim=16, composite="zbuffer",
                                                  renderer="spheres", spectral_norm=True,
@@ -161,6 +158,7 @@ def _unwrap(m):
 @dataclass
 class Run:
     """Everything a training run owns; `state()` is what a checkpoint stores."""
+
     cfg: TrainConfig
     G: torch.nn.Module
     D: torch.nn.Module
@@ -257,7 +255,7 @@ def train_step(run: Run, real: torch.Tensor, amp: bool = False) -> dict:
     with autocast:
         loss_g = losses.g_loss(D(fake).float())
     g0 = _unwrap(G)
-    if cfg.compactness > 0 and hasattr(g0, "template_spread"):
+    if cfg.compactness > 0 and isinstance(g0, TemplateGenerator):
         loss_g = loss_g + cfg.compactness * g0.template_spread()
     run.opt_g.zero_grad(set_to_none=True)
     loss_g.backward()
@@ -275,7 +273,7 @@ def train_step(run: Run, real: torch.Tensor, amp: bool = False) -> dict:
         l_a = losses.alignment_loss(g.alignment_features(z).float(),
                                     g.alignment_features(z_hat).float(), cfg.matching)
         l_i = (F.mse_loss(h.float(), target_f.float()) if target_f is not None
-               else torch.zeros((), device=real.device))  # projection renderer: no features
+               else torch.zeros((), device=real.device))  # explicit templates: no features
         l_p = losses.pyramid_l1(g(z_hat).float(), x_gen.float(), cfg.recon_levels)
         loss_e = l_a + cfg.lambda_i * l_i + cfg.lambda_p * l_p
         l_r = torch.zeros(())
@@ -428,7 +426,7 @@ def train(cfg: TrainConfig, train_data: dict, val_data: dict | None, out: Path,
     elif last.is_file():
         raise FileExistsError(f"{out} holds a run already (last.pt): pass --resume to continue "
                               "it, or choose another --out")
-    if run.iteration == 0 and cfg.template_init == "data" and hasattr(run.G, "init_from_data"):
+    if run.iteration == 0 and cfg.template_init == "data" and isinstance(run.G, ConvexGenerator):
         run.G.init_from_data(train_data["x"], cfg.model.n_instances)  # of the data's size
     if distributed:
         from torch.nn.parallel import DistributedDataParallel as DDP
@@ -437,7 +435,8 @@ def train(cfg: TrainConfig, train_data: dict, val_data: dict | None, out: Path,
         run.G, run.D, run.E = (DDP(m, device_ids=ids) for m in (run.G, run.D, run.E))
     amp = device.startswith("cuda")
 
-    dataset = DepthTensorDataset(train_data, augment=cfg.augment, rotation=20.0 if cfg.rotate else 0.0)
+    dataset = DepthTensorDataset(train_data, augment=cfg.augment,
+                                 rotation=20.0 if cfg.rotate else 0.0)
     gen = torch.Generator().manual_seed(cfg.seed * 1000 + rank + run.iteration)
     if distributed:
         from torch.utils.data.distributed import DistributedSampler
@@ -523,7 +522,8 @@ def train(cfg: TrainConfig, train_data: dict, val_data: dict | None, out: Path,
                 if is_main:
                     with open(out / "log.jsonl", "a") as f:
                         f.write(json.dumps(rec) + "\n")
-                    bar.set_postfix(it=run.iteration, d=f"{stats['loss_d']:.2f}", g=f"{stats['loss_g']:.2f}",
+                    bar.set_postfix(it=run.iteration, d=f"{stats['loss_d']:.2f}",
+                                    g=f"{stats['loss_g']:.2f}",
                                     a=f"{stats['l_a']:.2f}", p=f"{stats['l_p']:.3f}",
                                     r=f"{stats['l_real']:.3f}", ips=f"{ips:.0f}")
             if run.iteration % cfg.eval_every == 0 or run.iteration == cfg.max_iterations:

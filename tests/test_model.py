@@ -138,26 +138,29 @@ def test_adversarial_losses():
     assert losses.r1_penalty(logits, x).item() == pytest.approx(expected, rel=1e-5)
 
 
-def test_projection_generator_renders_rigid_copies_of_one_template():
-    from scipy import ndimage
+def test_generators_share_one_interface():
+    """Every generator decodes poses and z-buffers; the explicit ones (TemplateGenerator) also
+    render given poses and expose their template's geometry, which test-time fitting uses; old
+    checkpoints' retired config fields are ignored."""
+    from inseggan_ros.model import (ConvexGenerator, PoseGenerator, SphereGenerator,
+                                    TemplateGenerator, make_generator)
 
-    from inseggan_ros.model import ProjectionGenerator, make_generator
-
-    cfg = ModelConfig(renderer="projection", composite="zbuffer", template_size=16, **SMALL)
-    G = make_generator(cfg)
-    assert isinstance(G, ProjectionGenerator)
-    z = torch.randn(3, 3, 16, requires_grad=True)
-    x, feats = G(z, return_features=True)
-    assert x.shape == (3, 1, 64, 64) and feats is None
-    singles = G.render_instances(z)
-    for img in singles.detach().flatten(0, 1):
-        drawn = img > -0.95
-        if drawn.any():  # the initial template is one ball: one blob per instance
-            assert ndimage.label(drawn.numpy())[1] == 1
-    x.mean().backward()
-    assert G.occupancy.grad.abs().sum() > 0 and z.grad.abs().sum() > 0
+    learned = make_generator(ModelConfig(**SMALL))
+    assert isinstance(learned, PoseGenerator) and not isinstance(learned, TemplateGenerator)
+    for renderer, cls in (("spheres", SphereGenerator), ("convex", ConvexGenerator)):
+        G = make_generator(ModelConfig(**{**SMALL, "renderer": renderer,
+                                          "composite": "zbuffer"}))
+        assert isinstance(G, cls) and isinstance(G, TemplateGenerator)
+        z = torch.randn(2, 3, SMALL.get("latent_dim", 128))
+        pose = G.pose(z.reshape(6, -1)).reshape(2, 3, 6)
+        torch.testing.assert_close(G.render_poses(pose, 32, G.geometry()),
+                                   G.render_instances(z, 32))
+        x, feats = G(z, return_features=True)
+        assert x.shape == (2, 1, 64, 64) and feats is None
     with pytest.raises(ValueError, match="use composite='zbuffer'"):
-        ModelConfig(renderer="projection", composite="average")
+        ModelConfig(renderer="spheres", composite="average")
+    old = {**ModelConfig(**SMALL).to_dict(), "template_size": 32}
+    assert ModelConfig.from_dict(old) == ModelConfig(**SMALL)
 
 
 def test_sphere_template_is_one_connected_object_whatever_its_parameters():

@@ -159,7 +159,7 @@ def test_eval_cli_writes_table_json_and_png(tiny_model, tmp):
     assert r["smooth_iters"] == 5 and "5 smoothing iterations" in p.stdout
     p = run_cli("eval", "--model", tiny_model / "run" / "best.pt", "--data",
                 tiny_model / "data", "--frames", "4", "--out", tmp / "ev5", "--smooth-iters", "-1")
-    assert p.returncode == 2 and "smoothing iters -1 invalid; valid: >= 0" in p.stderr
+    assert p.returncode == 2 and "smooth_iters -1 invalid; valid: >= 0" in p.stderr
 
 
 def test_bad_model_files_give_one_clear_error(tmp):

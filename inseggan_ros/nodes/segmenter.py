@@ -84,7 +84,7 @@ class FrameError(ValueError):
         self.reason = reason
 
 
-class Segmenter(Node):
+class SegmenterNode(Node):
     def __init__(self, **kwargs):
         super().__init__("segmenter", **kwargs)
         self._declare_startup()
@@ -128,7 +128,7 @@ class Segmenter(Node):
         self.counts = Counter()  # received, segmented, skipped and skipped:<reason>
         window = self.get_parameter("latency_window").value
         self.latency_ms = deque(maxlen=window)  # received -> labels published
-        self.inference_ms = deque(maxlen=window)  # Segmenter call alone
+        self.inference_ms = deque(maxlen=window)  # segment.Segmenter call alone
         self.conversion_ms = deque(maxlen=window)  # message decode + encode
         self.stamps = deque(maxlen=1000)  # monotonic time of each segmented frame
         self.last_error = ""
@@ -268,7 +268,8 @@ class Segmenter(Node):
 
     def _declare_runtime(self) -> None:
         d, prep, cfg = self._descriptor, self.model.prep_cfg, self.model.inference
-        self._runtime_names = ["roi", "bin_polygon", "floor_depth", "min_height", "rim_band",
+        self._runtime_names = ["roi", "bin_polygon", "floor_depth", "floor_plane", "min_height",
+                               "rim_band",
                                "rim_step", "tau",
                                *(x.name for x in settings.exposed()),
                                "publish_masks", "publish_overlay", "publish_reconstruction",
@@ -280,8 +281,13 @@ class Segmenter(Node):
             "bin_polygon": ([], d("bin outline [u0, v0, u1, v1, ...] in pixels; pixels outside "
                                   "are background; [] = none",
                                   type_=ParameterType.PARAMETER_DOUBLE_ARRAY)),
-            "floor_depth": (0.0, d("metres from the camera to the bin floor; 0 = estimate per "
-                                   "frame", float_range=(0.0, 20.0))),
+            "floor_depth": (0.0, d("metres from the camera to a level bin floor; 0 = fit the "
+                                   "floor as a plane per frame", float_range=(0.0, 20.0))),
+            "floor_plane": ([], d(
+                "the bin floor as a plane for a fixed, tilted camera: [a, b, c] with 1/depth = "
+                "a u + b v + c at pixel (u, v) (column, row) of the full frame, as "
+                "preprocess.fit_floor_plane measures it; [] = fit it per frame; not together "
+                "with floor_depth", type_=ParameterType.PARAMETER_DOUBLE_ARRAY)),
             "min_height": (float(prep.min_height),
                            d("metres above the floor below which a pixel is background (about "
                              "half an object height)",
@@ -326,8 +332,13 @@ class Segmenter(Node):
         roi = _parse_roi(new["roi"])
         polygon = _parse_polygon(new["bin_polygon"])
         floor = float(new["floor_depth"])
+        plane = list(new["floor_plane"])
+        if plane and (len(plane) != 3 or not all(math.isfinite(v) for v in plane)):
+            raise ConfigError(f"floor_plane {plane} invalid; valid: [] (fit per frame) or "
+                              "[a, b, c], three finite numbers")
         prep = replace(self.model.prep_cfg, roi=roi, polygon=polygon,
                        floor_depth=floor if floor > 0 else None,
+                       floor_plane=tuple(plane) if plane else None,
                        min_height=float(new["min_height"]),
                        rim_band=float(new["rim_band"]), rim_step=float(new["rim_step"]))
         self.p, self.prep = new, prep
@@ -498,7 +509,7 @@ class Segmenter(Node):
 
 
 def main(args=None) -> int:
-    return common.run("segmenter", Segmenter, args, errors=(CheckpointError,))
+    return common.run("segmenter", SegmenterNode, args, errors=(CheckpointError,))
 
 
 if __name__ == "__main__":
