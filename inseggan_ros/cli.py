@@ -144,6 +144,7 @@ def _load_training_data(args):
         k = max(1, len(frames["x"]) // 10)
         if len(frames["x"]) < 2 * k:
             raise ValueError(f"{args.bag}: {len(frames['x'])} frames are too few to train on")
+
         def split(sl):
             return {key: (v[sl] if isinstance(v, np.ndarray) else v) for key, v in frames.items()}
 
