@@ -210,6 +210,7 @@ def cmd_distill(args) -> int:
 def cmd_eval(args) -> int:
     from . import data as data_mod
     from . import evaluate
+    from .paths import resolve_model
     from .segment import Segmenter
 
     import torch
@@ -217,7 +218,7 @@ def cmd_eval(args) -> int:
     if args.threads < 1:
         raise ValueError(f"--threads {args.threads} invalid; valid: >= 1")
     torch.set_num_threads(args.threads)
-    seg = Segmenter.from_checkpoint(args.model, device=args.device)
+    seg = Segmenter.from_checkpoint(resolve_model(str(args.model)), device=args.device)
     seg.inference = settings.resolve(seg.inference, args)
     n = seg.model_cfg.n_instances
     if args.data:

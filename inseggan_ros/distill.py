@@ -36,7 +36,7 @@ import torch
 from tqdm import tqdm
 
 from . import checkpoint, losses
-from .model import Encoder, ModelConfig, TemplateGenerator, pose_features
+from .model import Encoder, ModelConfig, SphereGenerator, pose_features
 from .refine import refine_poses, start_poses
 from .symmetry import SYMMETRIES, transform_image, transform_poses
 
@@ -193,9 +193,9 @@ def distill(source, train_x: np.ndarray, val: dict | None, out,
     prepared frames; the first `cfg.frames` are used). -> summary (also out/summary.json)."""
     state = checkpoint.load(source)
     _, G, E = checkpoint.build_models(state, source)
-    if not isinstance(G, TemplateGenerator):
-        raise ValueError(f"{source}: distillation needs an explicit-template model "
-                         f"(renderer 'spheres'), not {G.cfg.renderer!r}")
+    if not isinstance(G, SphereGenerator):
+        raise ValueError(f"{source}: distillation needs a rod template (renderer 'spheres': "
+                         f"the pose fit it distils is the rod's), not {G.cfg.renderer!r}")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     G.eval()

@@ -17,7 +17,7 @@ import torch.nn.functional as F
 from scipy.ndimage import distance_transform_edt, label
 
 from .losses import pyramid_l1
-from .model import pose_from_axis, rodrigues
+from .model import SphereGenerator, pose_from_axis, rodrigues
 from .symmetry import SYMMETRIES, map_poses, symmetry_matrix, transform_image
 
 
@@ -273,6 +273,9 @@ def refine_poses(G, pose: torch.Tensor, x: torch.Tensor, steps: int, reseeds: in
     iterations; fitting each rod's axis, with image-gradient Jacobian columns for x, y and yaw,
     halves its cost at the same quality (docs/experiments.md, 2026-11-21). -> (B, n, 6) poses."""
     B, H, n, _ = pose.shape
+    if steps > 0 and not isinstance(G, SphereGenerator):
+        raise ValueError(f"refine_steps {steps}: the Levenberg-Marquardt pose fit moves a rod's "
+                         f"axis; the {G.cfg.renderer} template has none yet (refine_steps: 0)")
     template = G.geometry()  # fixed while the poses move: computed once
     target = F.adaptive_avg_pool2d(x, size)
     if keep < 0:

@@ -69,7 +69,7 @@ def test_distill_refuses_a_learned_renderer_and_a_missing_checkpoint(tmp, cyl_da
             "--device", "cpu", check=True, timeout=600)
     p = run_cli("distill", "--checkpoint", tmp / "run" / "best.pt", "--data", cyl_data,
                 "--out", tmp / "d", "--frames", "8", "--quiet")
-    assert p.returncode == 2 and "needs an explicit-template model" in p.stderr
+    assert p.returncode == 2 and "needs a rod template" in p.stderr
     p = run_cli("distill", "--checkpoint", tmp / "missing.pt", "--data", cyl_data,
                 "--out", tmp / "d2", "--frames", "8", "--quiet")
     assert p.returncode == 2 and "no such model file" in p.stderr
