@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import BAGS, installed_executable, run_cli
+from test_bin_replay import stop
 
 from inseggan_ros import bags
 from inseggan_ros.bags import BagError, BagWriter, CameraInfo, read_all
@@ -391,13 +392,7 @@ def test_bin_replay_node_replays_a_cut_bag_and_warns_once(tmp):
     try:
         assert recv.wait(timeout=90) == 0, "receiver did not get its frames"
     finally:
-        if replay.poll() is None:
-            replay.send_signal(signal.SIGINT)
-        try:
-            replay.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            replay.kill()
-            replay.wait()
+        stop(replay)
         log = replay.stderr.read()
     assert replay.returncode == 0 and "Traceback" not in log, log
     assert log.count(f"{tmp / 'bag'}: truncated bag") == 1, log  # however often it loops
