@@ -61,12 +61,25 @@ def _scene_config(args):
                        noise=get_noise(args.noise))
 
 
+def _object(name: str) -> str:
+    """--object: a library part's name, or a model whose learned template is simulated."""
+    from .sim.learned import is_model_path
+    from .sim.objects import OBJECTS
+
+    if name in OBJECTS or is_model_path(name):
+        return name
+    raise argparse.ArgumentTypeError(
+        f"{name!r} is neither a part ({', '.join(OBJECTS)}) nor a model folder or .pt checkpoint")
+
+
 def _add_scene_args(p: argparse.ArgumentParser) -> None:
     from .sim.camera import PRESETS
     from .sim.noise import NOISE_PRESETS
     from .sim.objects import OBJECTS
 
-    p.add_argument("--object", default="cylinder", choices=list(OBJECTS))
+    p.add_argument("--object", default="cylinder", type=_object,
+                   help=f"a part of the library ({', '.join(OBJECTS)}; default cylinder), or a "
+                        "model folder or .pt checkpoint: the shape it learned")
     p.add_argument("--instances", type=int, default=5, help="objects per bin (default 5)")
     p.add_argument("--camera", default="default", choices=list(PRESETS),
                    help="camera preset: default = 224x224, realsense_d435 = 848x480, "
@@ -191,12 +204,14 @@ def cmd_distill(args) -> int:
     cfg = DistillConfig(frames=args.frames, refine_steps=args.refine_steps,
                         hypotheses=args.hypotheses, iterations=args.iterations,
                         eval_every=args.eval_every, lr=args.lr, seed=args.seed,
-                        encoder_nf=args.encoder_nf, lr_schedule=args.lr_schedule)
+                        encoder_nf=args.encoder_nf, lr_schedule=args.lr_schedule,
+                        lambda_pose=args.pose_weight, lambda_label=args.label_weight)
     train = data_mod.load_sim_split(args.data, "train", limit=cfg.frames, progress=not args.quiet)
     val = data_mod.load_sim_split(args.data, "val", limit=cfg.eval_frames)
     t0 = time.perf_counter()
     summary = distill(args.checkpoint, train["x"], val, args.out, cfg, resume=args.resume,
-                      progress=not args.quiet)
+                      progress=not args.quiet,
+                      train_labels=train["labels"] if cfg.lambda_label > 0 else None)
     vals = summary["val"]
     key = "miou" if vals and "miou" in vals[0] else "recon_l1"
     print(f"distilled {summary['iterations']} iterations on {summary['pseudo_label_frames']} "
@@ -537,6 +552,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--encoder-nf", type=int, default=0,
                    help="0: fine-tune the checkpoint's encoder (default); N: an encoder of width "
                         "N (a multiple of 8; narrower is faster), pruned from the checkpoint's")
+    p.add_argument("--pose-weight", type=float, default=1.0,
+                   help="weight of the loss on the refined poses (1; 0: no pseudo-labels)")
+    p.add_argument("--label-weight", type=float, default=0.0,
+                   help="weight of the loss on the data set's ground-truth labels (0): for "
+                        "simulated scenes of the part (`inseggan simulate --object model.pt`)")
     p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_distill)

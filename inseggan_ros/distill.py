@@ -57,6 +57,10 @@ class DistillConfig:
     eval_frames: int = 100
     seed: int = 0
     encoder_nf: int = 0  # 0: fine-tune the source's encoder; else one this wide, pruned from it
+    lambda_pose: float = 1.0  # weight of the pseudo-label pose loss (0: no pseudo-labels made)
+    lambda_label: float = 0.0  # weight of the ground-truth label loss (`losses.label_loss`):
+    # simulated scenes of the part, whose labels are known
+    lambda_ownership: float = 0.0  # weight of `losses.ownership_loss` (needs the labels too)
 
     def __post_init__(self):
         for name in ("frames", "refine_steps", "hypotheses", "chunk", "iterations", "batch_size",
@@ -66,6 +70,11 @@ class DistillConfig:
         if not self.lr > 0 or not self.lambda_real >= 0:
             raise ValueError(f"lr {self.lr!r} must be > 0 and lambda_real {self.lambda_real!r} "
                              ">= 0")
+        if not (self.lambda_pose >= 0 and self.lambda_label >= 0
+                and self.lambda_pose + self.lambda_label > 0):
+            raise ValueError(f"lambda_pose {self.lambda_pose!r} and lambda_label "
+                             f"{self.lambda_label!r} invalid; valid: both >= 0, not both 0")
+
         if self.lr_schedule not in ("constant", "cosine"):
             raise ValueError(f"lr_schedule {self.lr_schedule!r} invalid; valid: constant, cosine")
         if self.encoder_nf != 0 and (self.encoder_nf < 8 or self.encoder_nf % 8):
@@ -97,17 +106,23 @@ def pseudo_labels(G, E, x: np.ndarray, cfg: DistillConfig, path: Path,
     return torch.cat(parts)[:len(x)]
 
 
-def _symmetry_batch(x: torch.Tensor, pose: torch.Tensor, gen: torch.Generator):
+def _symmetry_batch(x: torch.Tensor, pose: torch.Tensor | None, gen: torch.Generator,
+                    labels: torch.Tensor | None = None):
     """Each frame under a random one of the 8 symmetries of the square (mirrored and/or
-    transposed: `symmetry.SYMMETRIES`), its poses with it."""
+    transposed: `symmetry.SYMMETRIES`), its poses and labels (where given) with it."""
     pick = torch.randint(0, len(SYMMETRIES), (len(x),), generator=gen)
-    x, pose = x.clone(), pose.clone()
+    x = x.clone()
+    pose = pose.clone() if pose is not None else None
+    labels = labels.clone() if labels is not None else None
     for k, sym in enumerate(SYMMETRIES[1:], 1):
         sel = pick == k
         if sel.any():
             x[sel] = transform_image(x[sel], sym)
-            pose[sel] = transform_poses(pose[sel], sym)
-    return x, pose
+            if pose is not None:
+                pose[sel] = transform_poses(pose[sel], sym)
+            if labels is not None:
+                labels[sel] = transform_image(labels[sel], sym)
+    return x, pose, labels
 
 
 def narrowed(E: Encoder, nf: int) -> Encoder:
@@ -182,20 +197,27 @@ def evaluate(G, E, val: dict, tau: float) -> dict:
 def plot_curves(history: list, path: Path) -> None:
     from .viz import plot_history
 
-    plot_history(history, path, [("distillation losses", "train", ("l_pose", "l_real")),
+    plot_history(history, path, [("distillation losses", "train", ("l_pose", "l_label", "l_real")),
                                  ("validation, no refinement", "val", ("miou", "recon_l1"))])
 
 
 def distill(source, train_x: np.ndarray, val: dict | None, out,
             cfg: DistillConfig = DistillConfig(),
-            resume: bool = False, progress: bool = True) -> dict:
+            resume: bool = False, progress: bool = True,
+            train_labels: np.ndarray | None = None) -> dict:
     """Fine-tune the encoder of training checkpoint `source` on `train_x` ((N, 1, 64, 64)
-    prepared frames; the first `cfg.frames` are used). -> summary (also out/summary.json)."""
+    prepared frames; the first `cfg.frames` are used) and, with `cfg.lambda_label` > 0, their
+    ground-truth `train_labels` ((N, 64, 64): simulated scenes of the part).
+    -> summary (also out/summary.json)."""
     state = checkpoint.load(source)
     _, G, E = checkpoint.build_models(state, source)
-    if not isinstance(G, SphereGenerator):
+    if cfg.lambda_pose > 0 and not isinstance(G, SphereGenerator):
         raise ValueError(f"{source}: distillation needs a rod template (renderer 'spheres': "
-                         f"the pose fit it distils is the rod's), not {G.cfg.renderer!r}")
+                         f"the pose fit it distils is the rod's), not {G.cfg.renderer!r}; "
+                         "label supervision alone (lambda_pose 0) works with any template")
+    if cfg.lambda_label > 0 and train_labels is None:
+        raise ValueError("lambda_label > 0 needs the training frames' labels (a simulated data "
+                         "set); none were given")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     G.eval()
@@ -204,7 +226,10 @@ def distill(source, train_x: np.ndarray, val: dict | None, out,
     tau = float(state.get("tau", -0.5))
     x = np.ascontiguousarray(train_x[:cfg.frames], dtype=np.float32)
     torch.manual_seed(cfg.seed)
-    pseudo = pseudo_labels(G, E, x, cfg, out / "pseudo.pt", progress)  # the source's encoder
+    pseudo = (pseudo_labels(G, E, x, cfg, out / "pseudo.pt", progress)  # the source's encoder
+              if cfg.lambda_pose > 0 else None)
+    lab = (torch.from_numpy(np.asarray(train_labels[:cfg.frames]).astype(np.int64))
+           if cfg.lambda_label > 0 else None)
     if cfg.encoder_nf:  # an encoder of another width, pruned from this one, on the same labels
         state = {**state, "model_config": {**state["model_config"], "encoder_nf": cfg.encoder_nf}}
         E = narrowed(E, cfg.encoder_nf)
@@ -252,22 +277,33 @@ def distill(source, train_x: np.ndarray, val: dict | None, out,
     stats = {}
     while it < cfg.iterations:
         idx = torch.randint(0, len(xt), (cfg.batch_size,), generator=gen)
-        xb, target = _symmetry_batch(xt[idx], pseudo[idx], gen)
+        xb, target, lb = _symmetry_batch(xt[idx], pseudo[idx] if pseudo is not None else None,
+                                         gen, lab[idx] if lab is not None else None)
         z = E(xb)
         B, n, d = z.shape
         pose = G.pose(z.reshape(B * n, d)).reshape(B, n, 6)
-        l_pose = losses.alignment_loss(_features(target), _features(pose))
-        l_real = losses.pyramid_l1(G.zbuffer(G.render_poses(pose)), xb, cfg.recon_levels)
+        renders = G.render_poses(pose)
+        l_pose = (losses.alignment_loss(_features(target), _features(pose)) if target is not None
+                  else renders.new_zeros(()))
+        l_label = (losses.label_loss(renders, lb, xb) if lb is not None
+                   else renders.new_zeros(()))
+        if lb is not None and cfg.lambda_ownership > 0:
+            l_label = l_label + cfg.lambda_ownership / max(cfg.lambda_label, 1e-9) * \
+                losses.ownership_loss(renders, lb)
+        l_real = losses.pyramid_l1(G.zbuffer(renders), xb, cfg.recon_levels)
         opt.zero_grad(set_to_none=True)
-        (l_pose + cfg.lambda_real * l_real).backward()
+        (cfg.lambda_pose * l_pose + cfg.lambda_label * l_label
+         + cfg.lambda_real * l_real).backward()
         if cfg.lr_schedule == "cosine":  # a function of the iteration: a resumed run follows it
             for group in opt.param_groups:
                 group["lr"] = cfg.lr * 0.5 * (1 + math.cos(math.pi * it / cfg.iterations))
         opt.step()
         it += 1
-        stats = {"l_pose": round(l_pose.item(), 5), "l_real": round(l_real.item(), 5)}
+        stats = {"l_pose": round(l_pose.item(), 5), "l_label": round(l_label.item(), 5),
+                 "l_real": round(l_real.item(), 5)}
         bar.update(1)
-        bar.set_postfix(pose=f"{stats['l_pose']:.3f}", real=f"{stats['l_real']:.3f}")
+        bar.set_postfix(pose=f"{stats['l_pose']:.3f}", label=f"{stats['l_label']:.3f}",
+                        real=f"{stats['l_real']:.3f}")
         if it % 50 == 0:
             rec = {"kind": "train", "iteration": it, **stats}
             history.append(rec)

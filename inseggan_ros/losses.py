@@ -117,3 +117,64 @@ def pyramid_l1(a: torch.Tensor, b: torch.Tensor, levels: int = 1,
         err = (a - b).abs() if w is None else w * (a - b).abs()
         loss = loss + (err.flatten(1).mean(1) if per_frame else err.mean())
     return loss / levels
+
+
+def label_loss(renders: torch.Tensor, labels: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """Supervision from ground-truth instance labels (simulated scenes of the part, whose every
+    label is known): each true instance is explained by one rendered instance, and no rendered
+    instance rises above the observed surface.
+
+    renders (B, n, H, W) single-instance renders in [-1, 1]; labels (B, H, W) integers, 0 the
+    background; x (B, 1, H, W) the input. The renders are matched to the true instances per
+    frame (Hungarian) by how well each explains each one's visible pixels (mean |render - x|
+    on its mask). Then
+      * own: mean |render - x| over every true instance's pixels, under its matched render;
+      * above: mean relu(render - x) over all renders and pixels (a render above the surface
+        would be seen; below it, it is hidden, which is allowed).
+    A true instance left without a match (more of them than n) costs nothing; an unmatched
+    render only has to stay under the surface. Height errors are what a pose error shows, so
+    this does not pull instances up to win pixels (a cross-entropy on the soft z-buffer did, and
+    the reconstruction error doubled: docs/experiments.md). -> own + above."""
+    B, n, H, W = renders.shape
+    m = int(labels.max()) if labels.numel() else 0
+    above = F.relu(renders - x).mean()
+    if m == 0:
+        return above
+    onehot = F.one_hot(labels.long(), m + 1)[..., 1:].permute(0, 3, 1, 2).to(renders)  # (B, m, ..)
+    err = (renders - x).abs()  # (B, n, H, W)
+    area = onehot.sum((2, 3))  # (B, m)
+    with torch.no_grad():
+        cost = torch.einsum("bihw,bjhw->bij", err, onehot) / area[:, None].clamp_min(1.0)
+        cost = torch.where(area[:, None] > 0, cost, torch.zeros_like(cost)).cpu().numpy()
+    target = torch.zeros(B, n, H, W, dtype=renders.dtype)  # target[b, i]: mask matched to i
+    for b in range(B):
+        rows, cols = linear_sum_assignment(cost[b])
+        target[b, torch.as_tensor(rows)] = onehot[b, torch.as_tensor(cols)].cpu()
+    target = target.to(renders.device)
+    own = (target * err).sum() / target.sum().clamp_min(1.0)
+    return own + above
+
+
+def ownership_loss(renders: torch.Tensor, labels: torch.Tensor, temperature: float = 0.05
+                   ) -> torch.Tensor:
+    """Cross-entropy of each foreground pixel's true instance under the soft z-buffer
+    (ownership softmax(renders / temperature)), renders matched to true instances by soft IoU
+    (Hungarian). Pulls a render up to win its pixels; see `label_loss`."""
+    B, n, H, W = renders.shape
+    own = torch.softmax(renders / temperature, dim=1)
+    m = int(labels.max()) if labels.numel() else 0
+    if m == 0:
+        return renders.sum() * 0
+    onehot = F.one_hot(labels.long(), m + 1)[..., 1:].permute(0, 3, 1, 2).to(own)
+    fg = onehot.sum(1, keepdim=True)
+    with torch.no_grad():
+        inter = torch.einsum("bihw,bjhw->bij", own * fg, onehot)
+        union = (own * fg).sum((2, 3))[:, :, None] + onehot.sum((2, 3))[:, None, :] - inter
+        cost = (-(inter / union.clamp_min(1e-6))).cpu().numpy()
+    target = torch.zeros(B, n, H, W, dtype=own.dtype)
+    for b in range(B):
+        rows, cols = linear_sum_assignment(cost[b])
+        target[b, torch.as_tensor(rows)] = onehot[b, torch.as_tensor(cols)].cpu()
+    target = target.to(own.device)
+    logp = torch.log_softmax(renders / temperature, dim=1)
+    return -(target * logp).sum() / target.sum().clamp_min(1.0)

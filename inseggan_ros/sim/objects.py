@@ -183,7 +183,13 @@ OBJECTS: dict[str, ObjectSpec] = {
 
 
 def get_object(name: str) -> ObjectSpec:
-    try:
+    """A part of the library by name, or the learned template of a model (a model folder or a
+    .pt checkpoint: `sim.learned`)."""
+    if name in OBJECTS:
         return OBJECTS[name]
-    except KeyError:
-        raise ValueError(f"unknown object {name!r}; valid: {', '.join(OBJECTS)}") from None
+    from .learned import cached_template_object, is_model_path
+
+    if is_model_path(name):
+        return cached_template_object(name)
+    raise ValueError(f"unknown object {name!r}; valid: {', '.join(OBJECTS)}, or a model folder "
+                     "or .pt checkpoint (its learned template)")

@@ -113,7 +113,7 @@ class BinSimulator:
         self._tmpdir = tempfile.TemporaryDirectory(prefix="inseggan_sim_")
         self._part_files = []
         for i, part in enumerate(self.spec.parts):
-            path = os.path.join(self._tmpdir.name, f"{self.spec.name}_part{i}.obj")
+            path = os.path.join(self._tmpdir.name, f"part{i}.obj")
             with open(path, "w") as f:
                 f.writelines(f"v {x:.6f} {y:.6f} {z:.6f}\n" for x, y, z in part)
                 f.writelines(f"f {a + 1} {b + 1} {c + 1}\n"
