@@ -70,6 +70,9 @@ class DistillConfig:
         if not self.lr > 0 or not self.lambda_real >= 0:
             raise ValueError(f"lr {self.lr!r} must be > 0 and lambda_real {self.lambda_real!r} "
                              ">= 0")
+        if self.lambda_ownership < 0 or (self.lambda_ownership > 0 and self.lambda_label <= 0):
+            raise ValueError(f"lambda_ownership {self.lambda_ownership!r} invalid; valid: >= 0, "
+                             "and > 0 only with lambda_label > 0 (both use the labels)")
         if not (self.lambda_pose >= 0 and self.lambda_label >= 0
                 and self.lambda_pose + self.lambda_label > 0):
             raise ValueError(f"lambda_pose {self.lambda_pose!r} and lambda_label "

@@ -52,8 +52,9 @@ class ModelConfig:
     # "monotone" (each at most 25 % smaller than the one before: cylinders, cones, bolts; no
     # dumbbells)
     height_gain: float = 1.8  # bin-crop width / max_height: template z units -> image heights
-    floor_contact: bool = False  # "spheres": an instance reaching below the floor is lifted
-    # until its lowest point touches it (objects lie on the floor or on each other)
+    floor_contact: bool = False  # an instance reaching below the floor is lifted until its
+    # lowest point touches it (objects lie on the floor or on each other): for "spheres" the
+    # lowest sphere, for "convex" the lowest corner
     pieces: int = 4  # "convex": convex pieces in the template's union
     walls: int = 4  # "convex": side planes of each piece (besides its top and bottom): 4 make
     # a box, and with each piece's own orientation and tilts a nut's sectors; 8 an octagon
@@ -91,9 +92,6 @@ class ModelConfig:
         if self.walls < 4 or self.walls % 4:
             raise ValueError(f"walls must be a multiple of 4 and >= 4 (a box needs 4), got "
                              f"{self.walls}")
-        if self.renderer == "convex" and self.floor_contact:
-            raise ValueError("floor_contact is implemented for the spheres renderer only; "
-                             "the convex renderer's poses carry the height themselves")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -526,6 +524,21 @@ class ConvexGenerator(TemplateGenerator):
     def geometry(self) -> tuple[torch.Tensor, torch.Tensor]:
         return self.halfspaces()
 
+    def corners(self, template: tuple[torch.Tensor, torch.Tensor] | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+        """-> every candidate corner of every piece (K, C, 3), the meeting point of three of its
+        planes (C = P choose 3), and whether it is a corner of the piece (K, C) bool: inside
+        all of its other planes. Differentiable in the template (a 3 x 3 solve each)."""
+        n, d = self.halfspaces() if template is None else template
+        K, P = d.shape
+        idx = torch.combinations(torch.arange(P, device=d.device), 3)  # (C, 3)
+        A, b = n[:, idx], d[:, idx]  # (K, C, 3, 3), (K, C, 3)
+        ok = torch.linalg.det(A).abs() > 1e-6
+        eye = torch.eye(3, device=d.device, dtype=d.dtype).expand_as(A)
+        x = torch.linalg.solve(torch.where(ok[..., None, None], A, eye), b)
+        inside = (torch.einsum("kpi,kci->kcp", n, x) <= d[:, None] + 1e-5).all(-1)
+        return x, ok & inside
+
     def template_spread(self) -> torch.Tensor:
         """Mean squared distance of the piece centres from their mean (a compactness prior)."""
         return ((self.centre - self.centre.mean(0)) ** 2).sum(1).mean()
@@ -550,7 +563,13 @@ class ConvexGenerator(TemplateGenerator):
         B, n = pose.shape[:2]
         p = pose.reshape(B * n, 6)
         normals, offsets = self.halfspaces() if template is None else template
-        nw, dw = pose_planes(normals, offsets, rodrigues(p[:, :3]), p[:, 3:])
+        R, t = rodrigues(p[:, :3]), p[:, 3:]
+        if self.cfg.floor_contact:  # the lowest corner at or above the floor
+            x, real = self.corners((normals, offsets))
+            z = torch.einsum("mj,kcj->mkc", R[:, 2], x)  # corners' heights above t_z
+            z = torch.where(real, z, torch.full_like(z, float("inf"))).flatten(1).amin(1)
+            t = torch.cat([t[:, :2], t[:, 2:] + F.relu(-(z + t[:, 2]))[:, None]], 1)
+        nw, dw = pose_planes(normals, offsets, R, t)
         px, py = self.pixel_grid(size)
         px, py = px.reshape(-1), py.reshape(-1)
         h = height_map(nw, dw, px, py, temperature=2.0 / px.numel())  # about a pixel

@@ -18,7 +18,7 @@ from scipy.ndimage import distance_transform_edt, label
 
 from .losses import pyramid_l1
 from .model import SphereGenerator, pose_from_axis, rodrigues
-from .symmetry import SYMMETRIES, map_poses, symmetry_matrix, transform_image
+from .symmetry import SYMMETRIES, map_poses, map_rotations, symmetry_matrix, transform_image
 
 
 def _adam_fit(param: torch.Tensor, loss_of, steps: int, lr: float,
@@ -116,7 +116,10 @@ def start_poses(G, E, x: torch.Tensor, hypotheses: int = 1) -> torch.Tensor:
     codes = E(torch.cat([transform_image(x, sym) for sym in syms]))  # one encoder pass
     pose = G.pose(codes.reshape(-1, codes.shape[-1])).reshape(len(syms), B, codes.shape[1], 6)
     back = torch.stack([symmetry_matrix(sym).T for sym in syms]).to(pose)  # the inverses
-    pose = torch.cat([pose[:1], map_poses(pose[1:], back[1:, None, None])]).transpose(0, 1)
+    from .model import ConvexGenerator
+
+    mapping = map_rotations if isinstance(G, ConvexGenerator) else map_poses  # any rotation
+    pose = torch.cat([pose[:1], mapping(pose[1:], back[1:, None, None])]).transpose(0, 1)
     extra = hypotheses - len(syms)
     if extra > 0:
         gen = torch.Generator().manual_seed(0)

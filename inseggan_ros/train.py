@@ -107,9 +107,12 @@ CONFIGS: dict[str, TrainConfig] = {
                                r1_gamma=10.0, lr_template=0.003, recon_levels=4,
                                compactness=5.0),
     # A template for any rigid part: a union of convex pieces (flat faces, edges, holes), full
-    # 3D poses; it starts as the box the training frames suggest (`init_from_data`).
+    # 3D poses, resting on the floor or above it (`floor_contact`: without it the first run's
+    # instances sank under the floor); it starts as the box the training frames suggest
+    # (`init_from_data`).
     "cpu_convex": TrainConfig(model=ModelConfig(nf=32, latent_dim=16, composite="zbuffer",
-                                                renderer="convex", spectral_norm=True),
+                                                renderer="convex", spectral_norm=True,
+                                                floor_contact=True),
                               batch_size=32, lambda_real=1.0, real_trains_generator=True,
                               r1_gamma=10.0, lr_template=0.003, recon_levels=4,
                               compactness=5.0),

@@ -119,6 +119,37 @@ def test_random_templates_are_one_bounded_connected_body(seed):
     assert shape.components(pieces) == 1
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_corners_are_the_pieces_corners_and_floor_contact_lifts_the_lowest_onto_the_floor(seed):
+    """`corners()` finds exactly the corners that scipy's half-space intersection finds; with
+    floor_contact a body posed partly under the floor renders as the same body with its lowest
+    corner on the floor (and one above the floor is left where it is)."""
+    G = _random_generator(seed)
+    x, real = G.corners()
+    mine = np.unique(np.round(x[real].detach().double().numpy(), 5), axis=0)
+    theirs = np.unique(np.round(shape.vertices(shape.template_pieces(G)), 5), axis=0)
+    assert mine.shape == theirs.shape and np.allclose(mine, theirs, atol=1e-4)
+    lifted = ConvexGenerator(ModelConfig(**{**G.cfg.to_dict(), "floor_contact": True}))
+    lifted.load_state_dict(G.state_dict())
+    gen = torch.Generator().manual_seed(seed)
+    R = rodrigues(torch.randn(1, 3, generator=gen))
+    lowest = float((x[real].detach() @ R[0].T)[:, 2].min())  # with the pose's height 0
+    # the lowest corner under the floor by 0.2, then above it by 0.1
+    w = _rotvec_of(R[0])
+    for height, expect in ((-lowest - 0.2, -lowest), (-lowest + 0.1, -lowest + 0.1)):
+        pose = torch.tensor([[*w, 0.05, -0.05, height]]).view(1, 1, 6)
+        want = torch.tensor([[*w, 0.05, -0.05, expect]]).view(1, 1, 6)
+        with torch.no_grad():
+            torch.testing.assert_close(lifted.render_poses(pose), G.render_poses(want),
+                                       atol=1e-4, rtol=0)
+
+
+def _rotvec_of(R: torch.Tensor) -> list[float]:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(R.double().numpy()).as_rotvec().tolist()
+
+
 def test_without_the_chain_pieces_fall_apart():
     """The checks above can fail: two pieces placed apart give two bodies (negative control)."""
     n, d = T.box_planes((0.05, 0.05, 0.05))
@@ -172,8 +203,6 @@ def test_generator_interface_and_alignment_features():
     torch.testing.assert_close(outer(R @ half_turn), outer(R), atol=1e-5, rtol=0)
     with pytest.raises(ValueError, match="walls"):
         ModelConfig(renderer="convex", composite="zbuffer", walls=6)
-    with pytest.raises(ValueError, match="floor_contact"):
-        ModelConfig(renderer="convex", composite="zbuffer", floor_contact=True)
 
 
 def test_shape_fidelity_of_known_bodies():
@@ -258,3 +287,27 @@ def test_short_training_run_moves_a_box_template_towards_the_true_block(tmp):
           after.iou, after.dims_template_mm)
     assert after.dims_error < before.dims_error - 0.05
     assert after.iou > before.iou + 0.03
+
+
+def test_mirrored_and_transposed_starting_poses_render_the_mirrored_image():
+    """`symmetry.map_rotations` (the convex template's test-time augmentation): the pose it
+    maps a box's pose to renders exactly the mirrored or transposed render, for all 8
+    symmetries of the square; and `matrix_to_rotvec` inverts `rodrigues` up to pi."""
+    from inseggan_ros.symmetry import (SYMMETRIES, map_rotations, matrix_to_rotvec,
+                                       symmetry_matrix, transform_image)
+
+    gen = torch.Generator().manual_seed(0)
+    w = torch.randn(500, 3, generator=gen)
+    w = w / w.norm(dim=1, keepdim=True) * torch.rand(500, 1, generator=gen) * math.pi
+    torch.testing.assert_close(rodrigues(matrix_to_rotvec(rodrigues(w))), rodrigues(w),
+                               atol=1e-5, rtol=0)
+    G = ConvexGenerator(ModelConfig(renderer="convex", composite="zbuffer", latent_dim=16,
+                                    pieces=1))
+    G.init_box((0.3, 0.15, 0.1))
+    pose = torch.cat([torch.randn(1, 4, 3, generator=gen),
+                      torch.rand(1, 4, 3, generator=gen) * 0.6 - 0.3], -1)
+    with torch.no_grad():
+        singles = G.render_poses(pose)
+        for sym in SYMMETRIES:
+            mapped = G.render_poses(map_rotations(pose, symmetry_matrix(sym)))
+            torch.testing.assert_close(mapped, transform_image(singles, sym), atol=1e-4, rtol=0)
