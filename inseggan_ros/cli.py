@@ -141,6 +141,7 @@ def _load_training_data(args):
     """(train, val, preprocess config, description) from a simulated data set or a bag."""
     from . import data as data_mod
     from .preprocess import PreprocessConfig
+    from .sim.dataset import load_meta
 
     if args.data:
         prep = data_mod.sim_preprocess_config(args.data)
@@ -148,7 +149,8 @@ def _load_training_data(args):
                                         progress=not args.quiet)
         val = data_mod.load_sim_split(args.data, "val", prep, limit=args.val_frames)
         info = {"source": "simulated data set", "path": str(args.data),
-                "train_frames": len(train["x"]), "val_frames": len(val["x"])}
+                "train_frames": len(train["x"]), "val_frames": len(val["x"]),
+                "camera": load_meta(args.data)["scene"]["camera"]}  # the template's scale
     else:
         roi = tuple(int(v) for v in args.roi.split(",")) if args.roi else None
         prep = PreprocessConfig(roi=roi, min_height=args.min_height, max_height=args.max_height)
@@ -215,11 +217,28 @@ def cmd_distill(args) -> int:
                       train_labels=train["labels"] if cfg.lambda_label > 0 else None)
     vals = summary["val"]
     key = "miou" if vals and "miou" in vals[0] else "recon_l1"
+    kind = "pseudo-labelled" if cfg.lambda_pose > 0 else "labelled"
     print(f"distilled {summary['iterations']} iterations on {summary['pseudo_label_frames']} "
-          f"pseudo-labelled frames in {(time.perf_counter() - t0) / 60:.1f} min; validation "
+          f"{kind} frames in {(time.perf_counter() - t0) / 60:.1f} min; validation "
           f"{key} without refinement: {vals[0][key]:.4f} -> best {summary['best_score']:.4f}"
           if vals else f"distilled {summary['iterations']} iterations")
     print(f"checkpoints: {args.out}/best.pt, {args.out}/last.pt; curves: {args.out}/curves.png")
+    return 0
+
+
+def cmd_loop(args) -> int:
+    from .loop import LoopConfig, run
+
+    cfg = LoopConfig(scenes=args.scenes, val_scenes=args.val_scenes, iterations=args.iterations,
+                     seed=args.seed, workers=args.workers, name=args.name)
+    t0 = time.perf_counter()
+    summary = run(args.model, args.data, args.out, cfg, progress=not args.quiet)
+    enc = summary["encoder"]
+    print(f"loop done in {(time.perf_counter() - t0) / 60:.1f} min ("
+          + ", ".join(f"{k} {v / 60:.1f} min" for k, v in summary["seconds"].items())
+          + f"); encoder validation mIoU on the simulated scenes {enc['val'][0]['miou']:.3f} -> "
+          f"{enc['best_score']:.3f}; model: {args.out}/model (tau {summary['tau']:.2f}), "
+          f"card {summary['card']}")
     return 0
 
 
@@ -565,6 +584,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_distill)
+
+    p = sub.add_parser("loop", help="finish a model on labelled simulated piles of the shape "
+                                     "it learned, and ship it with a label-free card")
+    p.add_argument("--model", type=Path, required=True,
+                   help="a trained model: checkpoint (best.pt) or model folder")
+    p.add_argument("--data", type=Path, required=True,
+                   help="the user's data set (its camera, noise and bin are simulated; its val "
+                        "and test frames make the card, without their labels)")
+    p.add_argument("--out", type=Path, required=True, help="run directory (resumable)")
+    p.add_argument("--scenes", type=int, default=3000, help="simulated training scenes (3000)")
+    p.add_argument("--val-scenes", type=int, default=200)
+    p.add_argument("--iterations", type=int, default=3000, help="encoder iterations (3000)")
+    p.add_argument("--seed", type=int, default=11, help="of the simulated scenes (11)")
+    p.add_argument("--workers", type=int, default=1, help="simulation processes (1)")
+    p.add_argument("--name", default="model", help="the exported model's name")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_loop)
 
     p = sub.add_parser("eval", help="InSeGAN vs classical baselines (mIoU table, PNG)")
     p.add_argument("--model", type=Path, required=True)

@@ -10,7 +10,8 @@ from scipy.spatial.transform import Rotation
 
 from inseggan_ros.checkpoint import build_models, load
 from inseggan_ros.sim.camera import CameraConfig
-from inseggan_ros.sim.learned import _model_camera, template_object, template_origin, template_scale
+from inseggan_ros.sim.learned import (model_camera, template_object, template_origin,
+                                      template_scale)
 from inseggan_ros.sim.objects import get_object
 from inseggan_ros.sim.scene import BinSimulator, SceneConfig
 
@@ -25,7 +26,7 @@ def _model_render(model: Path, pose7: np.ndarray, cam) -> tuple[np.ndarray, np.n
     whose pixels are the render's."""
     state = load(model / "model.pt")
     G = build_models(state, model / "model.pt")[1].eval()
-    scale = template_scale(state, G, _model_camera(model / "model.pt"))  # as exported
+    scale = template_scale(state, G, model_camera(model / "model.pt"))  # as exported
     R = Rotation.from_quat(pose7[3:]).as_matrix()
     origin = R @ template_origin(model) + pose7[:3]  # the template frame's origin, world
     # world -> model axes: image x to the right, image y down (signs from the camera itself)

@@ -113,12 +113,16 @@ def _scores(got) -> tuple[float, float]:
 
 
 def test_replayed_bag_is_segmented_better_than_kmeans(replayed, request):
-    from test_models import below_kmeans
+    from test_models import CPU_TOLERANCE, below_kmeans
 
     card = json.loads((REPO / "models" / DEFAULT_MODEL / "card.json").read_text())
-    if request.node.callspec.params["replayed"] == "default" and below_kmeans(
-            card, full_resolution=True):
-        full = card["sample_bag_scores"]["full_resolution"]
+    full = card["sample_bag_scores"]["full_resolution"]
+    default = request.node.callspec.params["replayed"] == "default"
+    if default and abs(full["inseggan"] - full["kmeans"]) <= CPU_TOLERANCE:
+        pytest.skip(f"the default model's card records a tie with K-Means on this sample bag at "
+                    f"full resolution ({full['inseggan']:.3f} vs {full['kmeans']:.3f}), which "
+                    "another CPU's rounding may flip")
+    if default and below_kmeans(card, full_resolution=True):
         request.applymarker(pytest.mark.xfail(strict=True, reason=(
             f"the default model's card records InSeGAN {full['inseggan']:.3f} vs K-Means "
             f"{full['kmeans']:.3f} on this sample bag at full resolution")))

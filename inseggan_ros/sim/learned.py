@@ -54,18 +54,21 @@ def _hull_mesh(points: np.ndarray) -> Mesh:
     return Mesh(points, tris)
 
 
-def _model_camera(path: Path):
-    """The camera the model was trained with: its card's (model folders), else None."""
+def model_camera(path: Path, state: dict | None = None):
+    """The camera the model was trained with (for its scale): its card's (model folders), else
+    the one its checkpoint records, else its training data set's; None if none is known."""
+    import json
+
+    from .camera import CameraConfig
+
     card = path.parent / "card.json" if path.suffix == ".pt" else path / "card.json"
-    if card.is_file():
-        import json
-
-        from .camera import CameraConfig
-
-        cam = json.loads(card.read_text()).get("camera")
-        if isinstance(cam, dict):
-            return CameraConfig(**cam)
-    return None
+    cam = json.loads(card.read_text()).get("camera") if card.is_file() else None
+    data = (state or {}).get("data") or {}
+    if cam is None:
+        cam = data.get("camera")
+    if cam is None and data.get("path") and (Path(data["path"]) / "meta.json").is_file():
+        cam = json.loads((Path(data["path"]) / "meta.json").read_text())["scene"]["camera"]
+    return CameraConfig(**cam) if isinstance(cam, dict) else None
 
 
 def template_pieces_units(G) -> list[np.ndarray]:
@@ -117,7 +120,7 @@ def template_object(path, camera=None) -> ObjectSpec:
                          "model.pt, or a .pt checkpoint")
     state = load(file)
     G = build_models(state, file)[1]
-    camera = camera if camera is not None else _model_camera(file)
+    camera = camera if camera is not None else model_camera(file, state)
     scale = template_scale(state, G, camera)
     parts = [v * scale for v in template_pieces_units(G)]
     centre = np.concatenate(parts).mean(0)
@@ -138,7 +141,7 @@ def template_origin(path, camera=None) -> np.ndarray:
     file = path / "model.pt" if path.is_dir() else path
     state = load(file)
     G = build_models(state, file)[1]
-    camera = camera if camera is not None else _model_camera(file)
+    camera = camera if camera is not None else model_camera(file, state)
     scale = template_scale(state, G, camera)
     return -np.concatenate([v * scale for v in template_pieces_units(G)]).mean(0)
 

@@ -1,0 +1,109 @@
+"""The shape loop: finish a model with labelled piles of the shape it learned.
+
+A user has only unlabelled frames of their part. Once a model has learned the part's shape from
+them (`inseggan train`), that shape becomes a simulator part (`sim.learned`), and piles of it,
+seen through the user's camera with its noise, are scenes whose every label is known. The
+encoder is then fitted to those labels (`distill --label-weight`), and the model shipped with a
+card made from the user's own frames, without their labels (`modelcard.export_from_dataset`):
+
+    inseggan loop --model runs/my_part/best.pt --data data/my_part --out runs/my_part_loop
+
+Stages, each skipped when a killed run is started again and its result is there (the
+simulation is written to a temporary folder and renamed when complete; the encoder's training
+resumes from its last checkpoint; the export writes its folder atomically):
+  1. simulate: `--scenes` labelled scenes of the learned part, with the camera, noise, bin and
+     number of instances of the user's data set (its meta.json);
+  2. encoder: the model's encoder fitted to them (`distill.DistillConfig` with the label losses);
+  3. export: out/model, tau and the card from the user's validation and test frames as if they
+     had no labels (the test split's labels, where it has them, give the card's mIoU rows).
+Writes out/summary.json with the time of each stage.
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from tqdm import tqdm
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    scenes: int = 3000  # labelled scenes of the learned part to train the encoder on
+    val_scenes: int = 200  # and to choose its best checkpoint with
+    iterations: int = 3000  # encoder iterations
+    label_weight: float = 1.0
+    ownership_weight: float = 0.2
+    seed: int = 11  # of the simulated scenes
+    workers: int = 1  # simulation processes
+    name: str = "model"  # the exported model's name
+
+    def __post_init__(self):
+        for key in ("scenes", "val_scenes", "iterations", "workers"):
+            if getattr(self, key) < 1:
+                raise ValueError(f"{key} {getattr(self, key)!r} invalid; valid: >= 1")
+
+
+def _model_file(model) -> Path:
+    path = Path(model)
+    file = path / "model.pt" if path.is_dir() else path
+    if not file.is_file():
+        raise ValueError(f"{model}: no model there; valid: a model folder with model.pt, or a "
+                         ".pt checkpoint (`inseggan train`'s best.pt)")
+    return file
+
+
+def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True) -> dict:
+    """The loop for `model` (its learned template) and the user's data set `data` -> summary
+    (also out/summary.json)."""
+    from . import data as data_mod
+    from .distill import DistillConfig, distill
+    from .modelcard import export_from_dataset
+    from .sim.dataset import DatasetSpec, generate, load_meta
+    from .sim.scene import SceneConfig
+
+    file = _model_file(model).resolve()
+    meta = load_meta(data)  # raises with what is wrong
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    seconds: dict[str, float] = {}
+    stages = tqdm(total=3, desc="loop", unit="stage", disable=not progress, position=0)
+
+    t0 = time.monotonic()
+    sim = out / "sim"
+    if not (sim / "meta.json").is_file():
+        scene = SceneConfig.from_dict({**meta["scene"], "object": str(file)})
+        spec = DatasetSpec(scene, {"train": cfg.scenes, "val": cfg.val_scenes, "test": 0},
+                           seed=cfg.seed)
+        generate(spec, sim, workers=cfg.workers, progress=progress)
+    seconds["simulate"] = round(time.monotonic() - t0, 1)
+    stages.update(1)
+
+    t0 = time.monotonic()
+    encoder = out / "encoder"
+    if not (encoder / "summary.json").is_file():
+        train = data_mod.load_sim_split(sim, "train", progress=progress)
+        val = data_mod.load_sim_split(sim, "val", limit=100)
+        dcfg = DistillConfig(frames=cfg.scenes, iterations=cfg.iterations, lr_schedule="cosine",
+                             eval_every=max(1, min(500, cfg.iterations)), lambda_pose=0.0,
+                             lambda_label=cfg.label_weight,
+                             lambda_ownership=cfg.ownership_weight, seed=cfg.seed)
+        distill(file, train["x"], val, encoder, dcfg, resume=True, progress=progress,
+                train_labels=train["labels"])
+    seconds["encoder"] = round(time.monotonic() - t0, 1)
+    stages.update(1)
+
+    t0 = time.monotonic()
+    card = export_from_dataset(encoder / "best.pt", data, cfg.name, out / "model")
+    seconds["export"] = round(time.monotonic() - t0, 1)
+    stages.update(1)
+    stages.close()
+
+    summary = {"model": str(model), "data": str(data), "config": asdict(cfg),
+               "seconds": seconds, "encoder": json.loads((encoder / "summary.json").read_text()),
+               "card": str(out / "model" / "card.json"), "tau": card.get("tau")}
+    tmp = out / "summary.json.tmp"
+    tmp.write_text(json.dumps(summary, indent=2, default=str))
+    tmp.replace(out / "summary.json")
+    return summary
