@@ -230,7 +230,7 @@ def cmd_loop(args) -> int:
     from .loop import LoopConfig, run
 
     cfg = LoopConfig(scenes=args.scenes, val_scenes=args.val_scenes, iterations=args.iterations,
-                     seed=args.seed, workers=args.workers, name=args.name)
+                     lr=args.lr, seed=args.seed, workers=args.workers, name=args.name)
     t0 = time.perf_counter()
     summary = run(args.model, args.data, args.out, cfg, progress=not args.quiet)
     enc = summary["encoder"]
@@ -586,7 +586,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_distill)
 
     p = sub.add_parser("loop", help="finish a model on labelled simulated piles of the shape "
-                                     "it learned, and ship it with a label-free card")
+                                    "it learned, and ship it with a label-free card")
     p.add_argument("--model", type=Path, required=True,
                    help="a trained model: checkpoint (best.pt) or model folder")
     p.add_argument("--data", type=Path, required=True,
@@ -596,6 +596,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scenes", type=int, default=3000, help="simulated training scenes (3000)")
     p.add_argument("--val-scenes", type=int, default=200)
     p.add_argument("--iterations", type=int, default=3000, help="encoder iterations (3000)")
+    p.add_argument("--lr", type=float, default=3e-4, help="their learning rate (3e-4, cosine)")
     p.add_argument("--seed", type=int, default=11, help="of the simulated scenes (11)")
     p.add_argument("--workers", type=int, default=1, help="simulation processes (1)")
     p.add_argument("--name", default="model", help="the exported model's name")

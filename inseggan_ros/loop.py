@@ -33,6 +33,7 @@ class LoopConfig:
     scenes: int = 3000  # labelled scenes of the learned part to train the encoder on
     val_scenes: int = 200  # and to choose its best checkpoint with
     iterations: int = 3000  # encoder iterations
+    lr: float = 3e-4  # their learning rate (cosine schedule down to 0)
     label_weight: float = 1.0
     ownership_weight: float = 0.2
     seed: int = 11  # of the simulated scenes
@@ -43,6 +44,8 @@ class LoopConfig:
         for key in ("scenes", "val_scenes", "iterations", "workers"):
             if getattr(self, key) < 1:
                 raise ValueError(f"{key} {getattr(self, key)!r} invalid; valid: >= 1")
+        if not 0 < self.lr < 1:
+            raise ValueError(f"lr {self.lr!r} invalid; valid: in (0, 1)")
 
 
 def _model_file(model) -> Path:
@@ -52,6 +55,28 @@ def _model_file(model) -> Path:
         raise ValueError(f"{model}: no model there; valid: a model folder with model.pt, or a "
                          ".pt checkpoint (`inseggan train`'s best.pt)")
     return file
+
+
+def _same_view(file: Path, data) -> None:
+    """The model's template is in units of its training crop: the user's frames must be cut
+    and scaled the same way (same camera and bin), else the simulated part and the template
+    disagree in size."""
+    from . import checkpoint
+    from .data import sim_preprocess_config
+
+    trained = checkpoint.load(file).get("preprocess_config") or {}
+    user = sim_preprocess_config(data).to_dict()
+    keys = ("roi", "floor_depth", "floor_plane", "max_height", "size")
+    diff = {k: (trained.get(k), user.get(k)) for k in keys
+            if k in user and _as_list(trained.get(k)) != _as_list(user.get(k))}
+    if diff:
+        raise ValueError(f"{data}: its frames are not cut as the model's were "
+                         + ", ".join(f"{k} {a} (model) vs {b} (data)" for k, (a, b) in diff.items())
+                         + "; valid: the data set of the camera and bin the model was trained on")
+
+
+def _as_list(v):
+    return [round(float(e), 6) for e in v] if isinstance(v, (list, tuple)) else v
 
 
 def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True) -> dict:
@@ -65,6 +90,7 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True)
 
     file = _model_file(model).resolve()
     meta = load_meta(data)  # raises with what is wrong
+    _same_view(file, data)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     seconds: dict[str, float] = {}
@@ -85,7 +111,8 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True)
     if not (encoder / "summary.json").is_file():
         train = data_mod.load_sim_split(sim, "train", progress=progress)
         val = data_mod.load_sim_split(sim, "val", limit=100)
-        dcfg = DistillConfig(frames=cfg.scenes, iterations=cfg.iterations, lr_schedule="cosine",
+        dcfg = DistillConfig(frames=cfg.scenes, iterations=cfg.iterations, lr=cfg.lr,
+                             lr_schedule="cosine",
                              eval_every=max(1, min(500, cfg.iterations)), lambda_pose=0.0,
                              lambda_label=cfg.label_weight,
                              lambda_ownership=cfg.ownership_weight, seed=cfg.seed)

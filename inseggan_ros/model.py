@@ -485,11 +485,13 @@ class ConvexGenerator(TemplateGenerator):
         a, b, c = (float(v) for v in half)
         if min(a, b, c) <= CONVEX_MIN_EXTENT:
             raise ValueError(f"box half-extents {half} invalid; valid: each > {CONVEX_MIN_EXTENT}")
-        self.centre.copy_(torch.tensor([0.0, 0.0, c]).expand(K, 3))
+        dev = self.extent.device  # called on a model already moved to its device, too
+        self.centre.copy_(torch.tensor([0.0, 0.0, c], device=dev).expand(K, 3))
         self.orientation.zero_()
         self.tilt.zero_()
-        support = self.base.abs() @ torch.tensor([a, b, c])  # (P,): the box's support function
-        noise = torch.randn(K, P, generator=torch.Generator().manual_seed(0)) * jitter
+        # (P,): the box's support function
+        support = self.base.abs() @ torch.tensor([a, b, c], device=dev)
+        noise = (torch.randn(K, P, generator=torch.Generator().manual_seed(0)) * jitter).to(dev)
         noise[0] = 0
         self.extent.copy_(_softplus_inverse((support - CONVEX_MIN_EXTENT + noise).clamp_min(1e-3)))
 
@@ -558,6 +560,15 @@ class ConvexGenerator(TemplateGenerator):
                      template: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
         """(B, n, 6) poses (axis-angle rotation, translation) -> (B, n, size, size) renders.
         `template`: `halfspaces()` computed beforehand (it does not change while poses move)."""
+        # In float32 even under mixed precision: the corners' 3 x 3 solves have no bfloat16
+        # kernel on CUDA, and the heights are differences of nearly equal plane distances.
+        with torch.autocast(pose.device.type, enabled=False):
+            if template is not None:
+                template = tuple(v.float() for v in template)
+            return self._render_poses(pose.float(), size, template)
+
+    def _render_poses(self, pose: torch.Tensor, size: int | None,
+                      template: tuple[torch.Tensor, torch.Tensor] | None) -> torch.Tensor:
         from .template import height_map, pose_planes
 
         B, n = pose.shape[:2]

@@ -40,9 +40,9 @@ def map_rotations(pose: torch.Tensor, S: torch.Tensor) -> torch.Tensor:
     """(..., 6) poses of any template -> rotation S R M and translation S t, M = diag(det S,
     1, 1): the pose of the body mirrored by S when the template is symmetric under M (a mirror
     image is not a pose, but a template symmetric in its own x, as the convex template's
-    starting box is about its centre, mirrored by S is the same template turned: S R M). For a template without that symmetry the result
-    is still a proper rotation near the mirrored pose: a starting point, which the fit keeps
-    only if it explains the input best."""
+    starting box is about its centre, mirrored by S is the same template turned: S R M). For a
+    template without that symmetry the result is still a proper rotation near the mirrored
+    pose: a starting point, which the fit keeps only if it explains the input best."""
     from .model import rodrigues
 
     shape = pose.shape[:-1]

@@ -174,7 +174,7 @@ def test_cli_simulate_bag_is_atomic(tmp):
     assert len(frames) == 3 and frames[0].encoding == "32FC1"
     assert "wrote" in p.stdout
     p = run_cli("simulate-bag", "--count", "3", "--object", "teapot", "--out", tmp / "x")
-    assert p.returncode == 2 and "invalid choice: 'teapot'" in p.stderr
+    assert p.returncode == 2 and "'teapot' is neither a part (cylinder," in p.stderr
     assert not (tmp / "x").exists()
     # killed while writing: no bag and no partial files
     # SIGINT at its default (a shell runs background jobs with it ignored, and Python keeps an

@@ -163,6 +163,25 @@ def test_generators_share_one_interface():
     assert ModelConfig.from_dict(old) == ModelConfig(**SMALL)
 
 
+def test_convex_template_renders_in_float32_under_mixed_precision():
+    """Training on a GPU runs under bfloat16 autocast; the convex template's corner solves have
+    no bfloat16 kernel there, and its heights are differences of plane distances: it renders
+    in float32 whatever the autocast, the same as without it, and its gradients flow."""
+    from inseggan_ros.model import make_generator
+
+    G = make_generator(ModelConfig(**{**SMALL, "renderer": "convex", "composite": "zbuffer",
+                                      "floor_contact": True}))
+    z = torch.randn(2, 3, SMALL.get("latent_dim", 128))
+    pose = G.pose(z.reshape(6, -1)).reshape(2, 3, 6).detach()
+    plain = G.render_poses(pose, 32)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        mixed = G.render_poses(pose.bfloat16(), 32, G.geometry())
+    assert mixed.dtype == torch.float32
+    torch.testing.assert_close(mixed, G.render_poses(pose.bfloat16().float(), 32))
+    mixed.mean().backward()
+    assert G.extent.grad.abs().sum() > 0 and plain.dtype == torch.float32
+
+
 def test_sphere_template_is_one_connected_object_whatever_its_parameters():
     """The rod of spheres cannot split: after arbitrary (here: random, large) parameters, every
     single-instance render of a rod lying above the floor is one connected blob, and the height
