@@ -147,7 +147,7 @@ def test_label_loss_matches_instances_whatever_their_order():
     off.requires_grad_(True)
     loss = losses.label_loss(off, labels, x)
     loss.backward()
-    assert float(loss) > 0 and off.grad[0, 1].abs().sum() > 0
+    assert loss.item() > 0 and off.grad[0, 1].abs().sum() > 0
 
 
 def test_supervision_by_the_labels_of_simulated_scenes_lowers_the_label_loss(tmp, cyl_data):
