@@ -208,13 +208,20 @@ def cmd_distill(args) -> int:
                         eval_every=args.eval_every, lr=args.lr, seed=args.seed,
                         encoder_nf=args.encoder_nf, lr_schedule=args.lr_schedule,
                         lambda_pose=args.pose_weight, lambda_label=args.label_weight,
-                        lambda_ownership=args.ownership_weight)
+                        lambda_ownership=args.ownership_weight, lambda_user=args.user_weight)
+    if (args.user_data is None) != (cfg.lambda_user == 0):
+        raise ValueError("--user-data and --user-weight go together: the user's frames and the "
+                         "weight of their reconstruction (> 0)")
     train = data_mod.load_sim_split(args.data, "train", limit=cfg.frames, progress=not args.quiet)
     val = data_mod.load_sim_split(args.data, "val", limit=cfg.eval_frames)
+    user = (data_mod.load_sim_split(args.user_data, "train", limit=args.user_frames,
+                                    progress=not args.quiet)["x"]
+            if args.user_data is not None else None)
     t0 = time.perf_counter()
     summary = distill(args.checkpoint, train["x"], val, args.out, cfg, resume=args.resume,
                       progress=not args.quiet,
-                      train_labels=train["labels"] if cfg.lambda_label > 0 else None)
+                      train_labels=train["labels"] if cfg.lambda_label > 0 else None,
+                      user_x=user)
     vals = summary["val"]
     key = "miou" if vals and "miou" in vals[0] else "recon_l1"
     kind = "pseudo-labelled" if cfg.lambda_pose > 0 else "labelled"
@@ -230,7 +237,8 @@ def cmd_loop(args) -> int:
     from .loop import LoopConfig, run
 
     cfg = LoopConfig(scenes=args.scenes, val_scenes=args.val_scenes, iterations=args.iterations,
-                     lr=args.lr, seed=args.seed, workers=args.workers, name=args.name)
+                     lr=args.lr, seed=args.seed, workers=args.workers, name=args.name,
+                     user_weight=args.user_weight)
     t0 = time.perf_counter()
     summary = run(args.model, args.data, args.out, cfg, progress=not args.quiet)
     enc = summary["encoder"]
@@ -581,6 +589,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with the labels: weight of the cross-entropy of each pixel's true "
                         "instance under the soft z-buffer (0; 0.2 with --label-weight 1 was the "
                         "best measured)")
+    p.add_argument("--user-data", type=Path, default=None,
+                   help="the user's own data set: its training frames (not their labels) are "
+                        "reconstructed too, a second batch each iteration (with --user-weight)")
+    p.add_argument("--user-weight", type=float, default=0.0,
+                   help="weight of that reconstruction loss (0: off)")
+    p.add_argument("--user-frames", type=int, default=3000,
+                   help="at most this many of the user's frames (3000)")
     p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_distill)
@@ -599,6 +614,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lr", type=float, default=3e-4, help="their learning rate (3e-4, cosine)")
     p.add_argument("--seed", type=int, default=11, help="of the simulated scenes (11)")
     p.add_argument("--workers", type=int, default=1, help="simulation processes (1)")
+    p.add_argument("--user-weight", type=float, default=0.0,
+                   help="the encoder also reconstructs the data set's own training frames "
+                        "(not their labels), with this weight (0: off)")
     p.add_argument("--name", default="model", help="the exported model's name")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_loop)

@@ -61,6 +61,9 @@ class DistillConfig:
     lambda_label: float = 0.0  # weight of the ground-truth label loss (`losses.label_loss`):
     # simulated scenes of the part, whose labels are known
     lambda_ownership: float = 0.0  # weight of `losses.ownership_loss` (needs the labels too)
+    lambda_user: float = 0.0  # weight of the reconstruction loss on a second batch, of the
+    # user's own unlabelled frames (`user_x`): keeps an encoder fitted to simulated scenes
+    # explaining the frames it will see
 
     def __post_init__(self):
         for name in ("frames", "refine_steps", "hypotheses", "chunk", "iterations", "batch_size",
@@ -78,6 +81,8 @@ class DistillConfig:
             raise ValueError(f"lambda_pose {self.lambda_pose!r} and lambda_label "
                              f"{self.lambda_label!r} invalid; valid: both >= 0, not both 0")
 
+        if not self.lambda_user >= 0:
+            raise ValueError(f"lambda_user {self.lambda_user!r} invalid; valid: >= 0")
         if self.lr_schedule not in ("constant", "cosine"):
             raise ValueError(f"lr_schedule {self.lr_schedule!r} invalid; valid: constant, cosine")
         if self.encoder_nf != 0 and (self.encoder_nf < 8 or self.encoder_nf % 8):
@@ -200,18 +205,21 @@ def evaluate(G, E, val: dict, tau: float) -> dict:
 def plot_curves(history: list, path: Path) -> None:
     from .viz import plot_history
 
-    plot_history(history, path, [("distillation losses", "train", ("l_pose", "l_label", "l_real")),
+    plot_history(history, path, [("distillation losses", "train",
+                                  ("l_pose", "l_label", "l_real", "l_user")),
                                  ("validation, no refinement", "val", ("miou", "recon_l1"))])
 
 
 def distill(source, train_x: np.ndarray, val: dict | None, out,
             cfg: DistillConfig = DistillConfig(),
             resume: bool = False, progress: bool = True,
-            train_labels: np.ndarray | None = None) -> dict:
+            train_labels: np.ndarray | None = None,
+            user_x: np.ndarray | None = None) -> dict:
     """Fine-tune the encoder of training checkpoint `source` on `train_x` ((N, 1, 64, 64)
     prepared frames; the first `cfg.frames` are used) and, with `cfg.lambda_label` > 0, their
-    ground-truth `train_labels` ((N, 64, 64): simulated scenes of the part).
-    -> summary (also out/summary.json)."""
+    ground-truth `train_labels` ((N, 64, 64): simulated scenes of the part); with
+    `cfg.lambda_user` > 0, also to reconstruct `user_x` ((M, 1, 64, 64) unlabelled frames of
+    the user's camera). -> summary (also out/summary.json)."""
     state = checkpoint.load(source)
     _, G, E = checkpoint.build_models(state, source)
     if cfg.lambda_pose > 0 and not isinstance(G, SphereGenerator):
@@ -221,6 +229,8 @@ def distill(source, train_x: np.ndarray, val: dict | None, out,
     if cfg.lambda_label > 0 and train_labels is None:
         raise ValueError("lambda_label > 0 needs the training frames' labels (a simulated data "
                          "set); none were given")
+    if cfg.lambda_user > 0 and (user_x is None or not len(user_x)):
+        raise ValueError("lambda_user > 0 needs the user's frames (user_x); none were given")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     G.eval()
@@ -237,6 +247,8 @@ def distill(source, train_x: np.ndarray, val: dict | None, out,
         state = {**state, "model_config": {**state["model_config"], "encoder_nf": cfg.encoder_nf}}
         E = narrowed(E, cfg.encoder_nf)
     xt = torch.from_numpy(x)
+    ut = (torch.from_numpy(np.ascontiguousarray(user_x, dtype=np.float32))
+          if cfg.lambda_user > 0 else None)
     opt = torch.optim.Adam(E.parameters(), cfg.lr, betas=(0.5, 0.999))
     gen = torch.Generator().manual_seed(cfg.seed)
     it, best, history, before = 0, -math.inf, [], 0.0
@@ -294,19 +306,26 @@ def distill(source, train_x: np.ndarray, val: dict | None, out,
             l_label = l_label + cfg.lambda_ownership / max(cfg.lambda_label, 1e-9) * \
                 losses.ownership_loss(renders, lb)
         l_real = losses.pyramid_l1(G.zbuffer(renders), xb, cfg.recon_levels)
+        l_user = renders.new_zeros(())
+        if ut is not None:  # the user's frames: nothing known but the frame itself
+            ub = _symmetry_batch(ut[torch.randint(0, len(ut), (cfg.batch_size,), generator=gen)],
+                                 None, gen)[0]
+            zu = E(ub)
+            upose = G.pose(zu.reshape(B * n, d)).reshape(B, n, 6)
+            l_user = losses.pyramid_l1(G.zbuffer(G.render_poses(upose)), ub, cfg.recon_levels)
         opt.zero_grad(set_to_none=True)
         (cfg.lambda_pose * l_pose + cfg.lambda_label * l_label
-         + cfg.lambda_real * l_real).backward()
+         + cfg.lambda_real * l_real + cfg.lambda_user * l_user).backward()
         if cfg.lr_schedule == "cosine":  # a function of the iteration: a resumed run follows it
             for group in opt.param_groups:
                 group["lr"] = cfg.lr * 0.5 * (1 + math.cos(math.pi * it / cfg.iterations))
         opt.step()
         it += 1
         stats = {"l_pose": round(l_pose.item(), 5), "l_label": round(l_label.item(), 5),
-                 "l_real": round(l_real.item(), 5)}
+                 "l_real": round(l_real.item(), 5), "l_user": round(l_user.item(), 5)}
         bar.update(1)
         bar.set_postfix(pose=f"{stats['l_pose']:.3f}", label=f"{stats['l_label']:.3f}",
-                        real=f"{stats['l_real']:.3f}")
+                        real=f"{stats['l_real']:.3f}", user=f"{stats['l_user']:.3f}")
         if it % 50 == 0:
             rec = {"kind": "train", "iteration": it, **stats}
             history.append(rec)

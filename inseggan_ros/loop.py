@@ -13,7 +13,8 @@ simulation is written to a temporary folder and renamed when complete; the encod
 resumes from its last checkpoint; the export writes its folder atomically):
   1. simulate: `--scenes` labelled scenes of the learned part, with the camera, noise, bin and
      number of instances of the user's data set (its meta.json);
-  2. encoder: the model's encoder fitted to them (`distill.DistillConfig` with the label losses);
+  2. encoder: the model's encoder fitted to them (`distill.DistillConfig` with the label losses),
+     with `--user-weight`, while also reconstructing the user's own unlabelled training frames;
   3. export: out/model, tau and the card from the user's validation and test frames as if they
      had no labels (the test split's labels, where it has them, give the card's mIoU rows).
 Writes out/summary.json with the time of each stage.
@@ -36,16 +37,21 @@ class LoopConfig:
     lr: float = 3e-4  # their learning rate (cosine schedule down to 0)
     label_weight: float = 1.0
     ownership_weight: float = 0.2
+    user_weight: float = 0.0  # reconstruction of the user's own (unlabelled) training frames,
+    # mixed into every encoder iteration (`DistillConfig.lambda_user`)
+    user_frames: int = 3000  # at most this many of them
     seed: int = 11  # of the simulated scenes
     workers: int = 1  # simulation processes
     name: str = "model"  # the exported model's name
 
     def __post_init__(self):
-        for key in ("scenes", "val_scenes", "iterations", "workers"):
+        for key in ("scenes", "val_scenes", "iterations", "workers", "user_frames"):
             if getattr(self, key) < 1:
                 raise ValueError(f"{key} {getattr(self, key)!r} invalid; valid: >= 1")
         if not 0 < self.lr < 1:
             raise ValueError(f"lr {self.lr!r} invalid; valid: in (0, 1)")
+        if not self.user_weight >= 0:
+            raise ValueError(f"user_weight {self.user_weight!r} invalid; valid: >= 0")
 
 
 def _model_file(model) -> Path:
@@ -115,9 +121,13 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True)
                              lr_schedule="cosine",
                              eval_every=max(1, min(500, cfg.iterations)), lambda_pose=0.0,
                              lambda_label=cfg.label_weight,
-                             lambda_ownership=cfg.ownership_weight, seed=cfg.seed)
+                             lambda_ownership=cfg.ownership_weight,
+                             lambda_user=cfg.user_weight, seed=cfg.seed)
+        user = (data_mod.load_sim_split(data, "train", limit=cfg.user_frames,
+                                        progress=progress)["x"]  # its frames, not its labels
+                if cfg.user_weight > 0 else None)
         distill(file, train["x"], val, encoder, dcfg, resume=True, progress=progress,
-                train_labels=train["labels"])
+                train_labels=train["labels"], user_x=user)
     seconds["encoder"] = round(time.monotonic() - t0, 1)
     stages.update(1)
 

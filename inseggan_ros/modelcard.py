@@ -408,11 +408,21 @@ def _distill_line(card: dict) -> list[str]:
     narrow = (f" into a {c['encoder_nf']}-wide encoder pruned from the source's "
               f"(`--encoder-nf {c['encoder_nf']}`)" if c.get("encoder_nf") else "")
     schedule = ", learning rate cosine to 0" if c.get("lr_schedule") == "cosine" else ""
-    return [f"* **Encoder distilled** (`inseggan distill`){narrow} on its refined poses of "
-            f"{c['frames']} training frames ({c['refine_steps']} iterations x {c['hypotheses']} "
-            f"starts), then fine-tuned, best of {c['iterations']} iterations at {d['iterations']} "
+    pose, label = c.get("lambda_pose", 1.0) > 0, c.get("lambda_label", 0.0) > 0
+    targets = []
+    if pose:
+        targets.append(f"its refined poses of {c['frames']} training frames "
+                       f"({c['refine_steps']} iterations x {c['hypotheses']} starts)")
+    if label:
+        targets.append(f"the known labels of {c['frames']} simulated piles of its own learned "
+                       "part (`inseggan loop`: no label of the training data is used)")
+    user = (", while reconstructing the user's own unlabelled frames (weight "
+            f"{c['lambda_user']:g})" if c.get("lambda_user", 0.0) > 0 else "")
+    where = " on those simulated piles" if label and not pose else ""
+    return [f"* **Encoder distilled** (`inseggan distill`){narrow} on " + " and ".join(targets)
+            + f"{user}, best of {c['iterations']} iterations at {d['iterations']} "
             f"({d['wall_minutes']} min of fine-tuning{schedule}); validation mIoU without "
-            f"refinement {before}{v['best']:.3f}"]
+            f"refinement{where} {before}{v['best']:.3f}"]
 
 
 def _bag_line(card: dict) -> list[str]:

@@ -170,3 +170,33 @@ def test_supervision_by_the_labels_of_simulated_scenes_lowers_the_label_loss(tmp
 
     before, after = loss(MODEL), loss(out / "last.pt")
     assert after < 0.9 * before, f"label loss {before:.4f} -> {after:.4f}"
+
+
+def test_the_users_own_frames_are_reconstructed_better_with_their_loss(tmp, cyl_data):
+    """`--user-data --user-weight`: an encoder fitted to labelled simulated scenes while also
+    reconstructing the user's unlabelled frames (here: noisy ones of another seed) explains
+    those frames better than the same run without them; either flag alone is refused."""
+    user = tmp / "user"
+    run_cli("simulate", "--quiet", "--count", "40", "--split", "40,0,0", "--noise", "realsense",
+            "--seed", "5", "--workers", "2", "--out", user, check=True, timeout=600)
+    common = ("distill", "--checkpoint", MODEL, "--data", cyl_data, "--frames", "48",
+              "--pose-weight", "0", "--label-weight", "1", "--iterations", "40", "--eval-every",
+              "40", "--lr", "1e-3", "--quiet")
+    run_cli(*common, "--out", tmp / "labels_only", check=True, timeout=600)
+    run_cli(*common, "--out", tmp / "with_user", "--user-data", user, "--user-weight", "2",
+            check=True, timeout=600)
+    bad = run_cli(*common, "--out", tmp / "bad", "--user-weight", "1", timeout=600)
+    assert bad.returncode != 0 and "--user-data and --user-weight go together" in bad.stderr
+    x = torch.from_numpy(load_sim_split(user, "train")["x"])
+
+    def recon(path) -> float:
+        _, G, E = checkpoint.build_models(checkpoint.load(path), path)
+        with torch.no_grad():
+            z = E.eval()(x)
+            pose = G.pose(z.reshape(-1, z.shape[-1])).reshape(len(x), z.shape[1], 6)
+            return float(losses.pyramid_l1(G.zbuffer(G.render_poses(pose)), x, 4))
+
+    without = recon(tmp / "labels_only" / "last.pt")
+    with_user = recon(tmp / "with_user" / "last.pt")
+    assert with_user < without, f"user-frame reconstruction {without:.4f} -> {with_user:.4f}"
+    assert json.loads((tmp / "with_user" / "summary.json").read_text())["last"]["l_user"] > 0
