@@ -96,10 +96,48 @@ def _add_scene_args(p: argparse.ArgumentParser) -> None:
 
 
 # ----------------------------------------------------------------------------- commands
+def _camera_from_bag(args):
+    """--camera-from: (camera, bin inner size, one line saying so) estimated from a bag's
+    depth frames and their camera info (sim.user_camera)."""
+    from .bags import read_frames
+    from .sim.user_camera import estimate_camera
+
+    frames = list(read_frames(args.camera_from, depth_topic=args.topic, limit=30))
+    info = next((f.camera_info for f in reversed(frames) if f.camera_info is not None), None)
+    if info is None:
+        raise ValueError(f"{args.camera_from}: no sensor_msgs/CameraInfo beside the depth "
+                         "topic, so no intrinsics to simulate with; valid: a bag with a "
+                         "sensor_msgs/CameraInfo beside the depth topic, or --camera PRESET")
+    cam, est = estimate_camera([f.metres() for f in frames], info)
+    size = est["bin_inner_size"]
+    line = (f"camera from {args.camera_from} ({est['frames']} frames): {cam.width}x{cam.height} "
+            f"fx {cam.fx:.1f} fy {cam.fy:.1f} cx {cam.cx:.1f} cy {cam.cy:.1f}, mount height "
+            f"{cam.mount_height:.4f} m, tilt {cam.tilt:.2f} deg, roll {cam.roll:.2f} deg, bin "
+            f"offset ({cam.bin_offset[0]:.3f}, {cam.bin_offset[1]:.3f}), bin inner size "
+            f"{size[0]:.3f} x {size[1]:.3f} m"
+            + ("" if all(est["walls_found"]) else " (walls not all in view: from the floor seen)"))
+    return cam, size, line
+
+
 def cmd_simulate(args) -> int:
+    from dataclasses import replace
+
     from .sim.dataset import DatasetSpec, generate
 
-    spec = DatasetSpec.from_fractions(_scene_config(args), args.count, args.split,
+    if args.camera_from is not None and args.camera is not None:
+        raise ValueError("--camera-from and --camera are mutually exclusive; valid: one of them")
+    args.camera = args.camera or "default"
+    scene = _scene_config(args)
+    if args.camera_from is not None:
+        cam, size, line = _camera_from_bag(args)
+        print(line)
+        if args.width is not None or args.height is not None:
+            cam = cam.resized(args.width or cam.width, args.height or cam.height)
+        pose = {k: v for k, v in (("tilt", args.tilt), ("roll", args.roll),
+                                  ("bin_offset", args.bin_offset)) if v is not None}
+        scene = replace(scene, camera=replace(cam, **pose),
+                        bin=replace(scene.bin, inner_size=tuple(size)))
+    spec = DatasetSpec.from_fractions(scene, args.count, args.split,
                                       seed=args.seed, shard_size=args.shard_size)
     t0 = time.perf_counter()
     meta = generate(spec, args.out, workers=args.workers, bags=args.bags,
@@ -451,7 +489,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--out", required=True, type=Path, help="output directory")
-    p.set_defaults(func=cmd_simulate)
+    p.add_argument("--camera-from", type=Path, metavar="BAG",
+                   help="the camera (and bin inner size) estimated from up to 30 depth frames "
+                        "of a bag with a sensor_msgs/CameraInfo beside them, instead of "
+                        "--camera PRESET (--tilt, --roll, --bin-offset, --width, --height "
+                        "still override)")
+    p.add_argument("--topic", help="with --camera-from: the depth topic (default: auto)")
+    p.set_defaults(func=cmd_simulate, camera=None)  # None: not given (default preset)
 
     p = sub.add_parser("simulate-bag", help="simulate bins straight into a rosbag2 bag")
     _add_scene_args(p)
