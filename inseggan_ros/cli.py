@@ -222,7 +222,7 @@ def cmd_train(args) -> int:
                      compactness=args.compactness, coord_conv=args.coord_conv or None,
                      recon_levels=args.recon_levels, background_weight=args.background_weight,
                      real_trains_template=False if args.template_from_gan else None,
-                     floor_contact=args.floor_contact or None)
+                     floor_contact=args.floor_contact or None, spheres=args.spheres)
     train_data, val_data, prep, info = _load_training_data(args)
     if val_data.get("labels") is None:
         print("no labels in the validation frames: validation uses the reconstruction error")
@@ -588,6 +588,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--renderer", choices=["learned", "spheres", "convex"])
     p.add_argument("--lr-template", type=float, help="learning rate of an explicit template")
     p.add_argument("--compactness", type=float, help="weight of the template compactness prior")
+    p.add_argument("--spheres", type=int,
+                   help="spheres on the rod template (6): a rod of K spheres is at most about "
+                        "K / 2 times as long as it is thick (long thin parts: more)")
     p.add_argument("--coord-conv", action="store_true", help="encoder sees pixel coordinates")
     p.add_argument("--recon-levels", type=int, help="pyramid levels of the re-render losses")
     p.add_argument("--floor-contact", action="store_true",

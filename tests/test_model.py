@@ -488,3 +488,23 @@ def test_written_out_adam_matches_torch_adam():
         opt.step()
     torch.testing.assert_close(ours, p.detach(), rtol=0, atol=1e-6)
     assert loss_of(ours) < loss_of(start)
+
+
+def test_a_rod_of_more_spheres_can_be_longer_for_its_thickness():
+    """`--spheres`: consecutive spheres must overlap, so a rod of K spheres is at most about
+    K / 2 times as long as it is thick. The bolt (46 mm long, 10 mm shaft: 4.6) is beyond a
+    rod of 6 and within one of 12."""
+    from inseggan_ros.model import SphereGenerator
+
+    def longest(k):
+        G = SphereGenerator(ModelConfig(renderer="spheres", composite="zbuffer", spheres=k,
+                                        radius_profile="monotone", **SMALL))
+        with torch.no_grad():
+            G.length.fill_(100.0)  # asks for far more than the overlap allows
+            G.radius_shape.fill_(50.0)  # even radii
+            centres, radii = G.spheres()
+        span = float(centres[-1, 0] - centres[0, 0] + radii[0] + radii[-1])
+        return span / float(2 * radii.min())
+
+    assert longest(6) == pytest.approx((0.95 * 5 + 2) / 2, rel=1e-3)
+    assert longest(6) < 4.6 < longest(12)
