@@ -12,9 +12,10 @@ from inseggan_ros.data import load_sim_split
 from inseggan_ros.metrics import mean_miou, miou_batch
 from inseggan_ros.segment import labels_from_renders
 
-# a box part: its shipped model was trained without labels (the cylinder's already went through
-# the loop)
-MODEL = Path(__file__).resolve().parents[1] / "models" / "wooden_block"
+# a box part's model as training left it, without labels: the wooden_block model shipped before
+# its encoder went through the loop (every shipped model has now been through it, so none of them
+# is an unsupervised starting point)
+MODEL = Path(__file__).resolve().parent / "data" / "wooden_block_unsupervised.pt"
 CAMERA = ("--camera", "realsense_d435", "--noise", "realsense")  # the model's
 
 
@@ -54,7 +55,7 @@ def test_a_tiny_loop_explains_held_out_scenes_of_its_shape_better_than_its_start
             "--split", "0,0,40", *CAMERA,
             "--seed", "99", "--workers", "2", "--out", held, check=True, timeout=600)
     data = load_sim_split(held, "test")
-    before, after = _scores(MODEL / "model.pt", data), _scores(out / "encoder" / "last.pt", data)
+    before, after = _scores(MODEL, data), _scores(out / "encoder" / "last.pt", data)
     msg = "held-out scenes of the learned shape, label loss / mIoU: {:.3f} / {:.3f} -> " \
           "{:.3f} / {:.3f}".format(*before, *after)
     # the instances explained better (measured: 0.89 -> 0.84); at this size (96 scenes, 150
