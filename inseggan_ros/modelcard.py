@@ -310,7 +310,7 @@ def label_free_markdown(card: dict) -> str:
                f"({data.get('train_frames', '?')} training frames)" if data else "unknown")
     lines = [
         f"# Model card: {card['name']}", "",
-        f"* **Model:** n = {card['n_instances']} per bin, renderer {m['renderer']}, composite "
+        f"* **Model:** n = {card['n_instances']} per bin, renderer {_template_text(m)}, composite "
         f"{m['composite']}, nf {m['nf']}, latent {m['latent_dim']}",
         f"* **Training:** {trained}; {card['iterations']} iterations, {card['wall_minutes']} min "
         f"wall time",
@@ -448,6 +448,16 @@ def _distill_record(state: dict) -> dict | None:
                                        "best": d["best"]}}
 
 
+def _template_text(m: dict) -> str:
+    """The template as a reader needs it: the renderer and its size (a rod's sphere count
+    bounds how long it can be for its thickness; a convex template's piece count)."""
+    if m["renderer"] == "spheres" and "spheres" in m:
+        return f"spheres ({m['spheres']} on the rod's axis)"
+    if m["renderer"] == "convex" and "pieces" in m:
+        return f"convex ({m['pieces']} pieces)"
+    return m["renderer"]
+
+
 def card_markdown(card: dict) -> str:
     from .evaluate import format_table
 
@@ -462,7 +472,7 @@ def card_markdown(card: dict) -> str:
         f"* **Camera:** {cam['width']}x{cam['height']}, fx {cam['fx']}, mounted "
         f"{cam['mount_height']} m above the bin floor; noise: {noise}",
         f"* **Data:** simulated, seed {card['data']['seed']}, scenes {card['data']['counts']}",
-        f"* **Model:** renderer {m['renderer']}, composite {m['composite']}, nf {m['nf']}"
+        f"* **Model:** renderer {_template_text(m)}, composite {m['composite']}, nf {m['nf']}"
         + (f" (encoder {m['encoder_nf']})" if m.get("encoder_nf") else "") + ", "
         f"latent {m['latent_dim']}, coord_conv {m.get('coord_conv', False)}",
         f"* **Training:** {card['iterations']} iterations, {card['wall_minutes']} min wall time, "
