@@ -277,8 +277,20 @@ def cmd_loop(args) -> int:
     cfg = LoopConfig(scenes=args.scenes, val_scenes=args.val_scenes, iterations=args.iterations,
                      lr=args.lr, seed=args.seed, workers=args.workers, name=args.name,
                      user_weight=args.user_weight)
+    train_cfg = None
+    if args.model is None:
+        from .train import get_config
+
+        train_cfg = get_config(args.config, spheres=args.spheres, seed=args.train_seed,
+                               max_minutes=args.train_minutes,
+                               max_iterations=args.train_iterations,
+                               eval_every=args.eval_every, checkpoint_every=args.eval_every)
+    elif args.train_minutes is not None or args.train_iterations is not None:
+        raise ValueError("--train-minutes/--train-iterations learn the shape first: without "
+                         "--model only")
     t0 = time.perf_counter()
-    summary = run(args.model, args.data, args.out, cfg, progress=not args.quiet)
+    summary = run(args.model, args.data, args.out, cfg, progress=not args.quiet,
+                  train_cfg=train_cfg)
     enc = summary["encoder"]
     print(f"loop done in {(time.perf_counter() - t0) / 60:.1f} min ("
           + ", ".join(f"{k} {v / 60:.1f} min" for k, v in summary["seconds"].items())
@@ -649,8 +661,20 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("loop", help="finish a model on labelled simulated piles of the shape "
                                     "it learned, and ship it with a label-free card")
-    p.add_argument("--model", type=Path, required=True,
-                   help="a trained model: checkpoint (best.pt) or model folder")
+    p.add_argument("--model", type=Path,
+                   help="a trained model: checkpoint (best.pt) or model folder; without it the "
+                        "loop learns the shape first (`inseggan train` on the data set's "
+                        "unlabelled frames, into OUT/shape)")
+    p.add_argument("--config", default="cpu_spheres",
+                   help="without --model: the training config (cpu_spheres)")
+    p.add_argument("--spheres", type=int, help="without --model: the rod's sphere count")
+    p.add_argument("--train-minutes", type=float,
+                   help="without --model: the shape's training budget in minutes (the config's "
+                        "when neither this nor --train-iterations is given)")
+    p.add_argument("--train-iterations", type=int)
+    p.add_argument("--train-seed", type=int, default=1)
+    p.add_argument("--eval-every", type=int, default=100,
+                   help="without --model: validate and checkpoint every N iterations (100)")
     p.add_argument("--data", type=Path, required=True,
                    help="the user's data set (its camera, noise and bin are simulated; its val "
                         "and test frames make the card, without their labels)")

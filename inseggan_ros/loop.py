@@ -4,13 +4,19 @@ A user has only unlabelled frames of their part. Once a model has learned the pa
 them (`inseggan train`), that shape becomes a simulator part (`sim.learned`), and piles of it,
 seen through the user's camera with its noise, are scenes whose every label is known. The
 encoder is then fitted to those labels (`distill --label-weight`), and the model shipped with a
-card made from the user's own frames, without their labels (`modelcard.export_from_dataset`):
+card made from the user's own frames, without their labels (`modelcard.export_from_dataset`).
+Without a model, the loop first learns the shape itself (`inseggan train` on the data set's
+unlabelled frames), so one command goes from frames to a shipped model:
 
     inseggan loop --model runs/my_part/best.pt --data data/my_part --out runs/my_part_loop
+    inseggan loop --data data/my_part --out runs/my_part_loop --train-minutes 40   # all of it
 
 Stages, each skipped when a killed run is started again and its result is there (the
 simulation is written to a temporary folder and renamed when complete; the encoder's training
 resumes from its last checkpoint; the export writes its folder atomically):
+  0. shape (only without `--model`): `train.train` on the data set's training frames (no labels;
+     validation by reconstruction when the data set has none) into out/shape, for the training
+     config's budget; a killed run resumes from out/shape/last.pt; its best.pt is the model;
   1. simulate: `--scenes` labelled scenes of the learned part, with the camera, noise, bin and
      number of instances of the user's data set (its meta.json);
   2. encoder: the model's encoder fitted to them (`distill.DistillConfig` with the label losses),
@@ -85,22 +91,59 @@ def _as_list(v):
     return [round(float(e), 6) for e in v] if isinstance(v, (list, tuple)) else v
 
 
-def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True) -> dict:
+def learn_shape(data, out, train_cfg, progress: bool = True, val_frames: int = 100) -> Path:
+    """Stage 0: learn the part's shape from the data set's unlabelled training frames with
+    `train_cfg` (a `train.TrainConfig`; its instance count is the data set's) -> out/best.pt.
+    Skipped when out/summary.json says the run finished; resumed from out/last.pt after a kill."""
+    from dataclasses import replace
+
+    from . import data as data_mod
+    from .sim.dataset import load_meta
+    from .train import train
+
+    out = Path(out)
+    if (out / "summary.json").is_file() and (out / "best.pt").is_file():
+        return out / "best.pt"
+    scene = load_meta(data)["scene"]
+    train_cfg = replace(train_cfg, model=replace(train_cfg.model,
+                                                 n_instances=int(scene["instances"])))
+    prep = data_mod.sim_preprocess_config(data)
+    frames = data_mod.load_sim_split(data, "train", prep, progress=progress)
+    frames.pop("labels", None)  # the shape is learned without labels
+    val = data_mod.load_sim_split(data, "val", prep, limit=val_frames)
+    info = {"source": "simulated data set", "path": str(data), "train_frames": len(frames["x"]),
+            "val_frames": len(val["x"]), "camera": scene["camera"]}
+    train(train_cfg, frames, val, out, prep.to_dict(), info, resume=(out / "last.pt").is_file(),
+          progress=progress)
+    return out / "best.pt"
+
+
+def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
+        train_cfg=None) -> dict:
     """The loop for `model` (its learned template) and the user's data set `data` -> summary
-    (also out/summary.json)."""
+    (also out/summary.json). With `model` None the shape is learned first with `train_cfg`."""
     from . import data as data_mod
     from .distill import DistillConfig, distill
     from .modelcard import export_from_dataset
     from .sim.dataset import DatasetSpec, generate, load_meta
     from .sim.scene import SceneConfig
 
-    file = _model_file(model).resolve()
+    if (model is None) == (train_cfg is None):
+        raise ValueError("give a trained model, or a training config to learn the shape with "
+                         "(not both)")
     meta = load_meta(data)  # raises with what is wrong
-    _same_view(file, data)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     seconds: dict[str, float] = {}
-    stages = tqdm(total=3, desc="loop", unit="stage", disable=not progress, position=0)
+    stages = tqdm(total=3 if model is not None else 4, desc="loop", unit="stage",
+                  disable=not progress, position=0)
+    if model is None:
+        t0 = time.monotonic()
+        model = learn_shape(data, out / "shape", train_cfg, progress)
+        seconds["shape"] = round(time.monotonic() - t0, 1)
+        stages.update(1)
+    file = _model_file(model).resolve()
+    _same_view(file, data)
 
     t0 = time.monotonic()
     sim = out / "sim"

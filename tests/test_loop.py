@@ -80,3 +80,36 @@ def test_loop_refuses_a_missing_model_and_frames_of_another_camera(tmp):
     p = run_cli("loop", "--model", MODEL, "--data", tmp / "other", "--out", tmp / "o")
     assert p.returncode == 2 and "not cut as the model's were roi" in p.stderr, p.stderr
     assert not (tmp / "o" / "sim").exists()
+
+
+def test_one_command_from_unlabelled_frames_learns_the_shape_then_ships_a_model(tmp):
+    """Without --model the loop trains the shape first (stage `shape`), then goes on from its
+    best checkpoint; started again, nothing is redone."""
+    user = tmp / "user"
+    run_cli("simulate", "--quiet", "--object", "wooden_block", "--instances", "4", "--count", "72",
+            "--split", "48,12,12", "--seed", "22", *CAMERA, "--workers", "2", "--out", user,
+            check=True, timeout=600)
+    out = tmp / "loop"
+    args = ["loop", "--data", user, "--out", out, "--train-iterations", "20", "--eval-every",
+            "10", "--scenes", "32", "--val-scenes", "8", "--iterations", "20", "--quiet"]
+    p = run_cli(*args, check=True, timeout=900)
+    assert "loop done" in p.stdout and "shape" in p.stdout
+    summary = json.loads((out / "summary.json").read_text())
+    assert list(summary["seconds"]) == ["shape", "simulate", "encoder", "export"]
+    shape = json.loads((out / "shape" / "summary.json").read_text())
+    assert shape["iterations"] == 20
+    # the shipped model carries the template the shape stage learned, at the data set's n
+    learned = checkpoint.load(out / "shape" / "best.pt")
+    shipped = checkpoint.load(out / "model" / "model.pt")
+    assert learned["model_config"]["n_instances"] == 4
+    shape_keys = [k for k in learned["generator"] if not k.startswith("pose.")]  # the rod
+    assert shape_keys
+    for key in shape_keys:
+        assert torch.allclose(learned["generator"][key].float(),
+                              shipped["generator"][key].float(), atol=1e-3), key
+    stamp = (out / "shape" / "last.pt").stat().st_mtime_ns
+    run_cli(*args, check=True, timeout=600)
+    assert (out / "shape" / "last.pt").stat().st_mtime_ns == stamp
+    p = run_cli("loop", "--model", out / "shape" / "best.pt", "--data", user, "--out", tmp / "o",
+                "--train-minutes", "5")
+    assert p.returncode == 2 and "without --model only" in p.stderr, p.stderr
