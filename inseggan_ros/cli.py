@@ -342,6 +342,17 @@ def cmd_eval(args) -> int:
     return 0
 
 
+def cmd_card_shape(args) -> int:
+    from .modelcard import add_shape
+
+    t0 = time.perf_counter()
+    f = add_shape(args.model, args.object, voxels=args.voxels)
+    print(f"{args.model}: learned template vs the true {f['object']}: volumetric IoU "
+          f"{f['iou']:.3f}, dimensions {f['dims_template_mm']} mm vs {f['dims_true_mm']} mm "
+          f"({time.perf_counter() - t0:.0f} s); card, README and shape.png written")
+    return 0
+
+
 def cmd_export(args) -> int:
     from .evaluate import format_table
     from .modelcard import export_model
@@ -520,6 +531,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--out", required=True, type=Path, help="bag directory to create")
     p.set_defaults(func=cmd_simulate_bag)
+
+    p = sub.add_parser("card-shape", help="add the learned template vs the simulator's true "
+                                          "part (IoU, dimensions, three views) to a model card")
+    p.add_argument("model", type=Path, help="a model folder (models/<name>)")
+    p.add_argument("--object", help="the true part (default: the card's object)")
+    p.add_argument("--voxels", type=int, default=30,
+                   help="voxels along the part's largest extent (30)")
+    p.set_defaults(func=cmd_card_shape)
 
     p = sub.add_parser("export", help="ship a trained model: models/<name>/ with a model card")
     p.add_argument("--checkpoint", type=Path, required=True,

@@ -436,6 +436,66 @@ def _bag_line(card: dict) -> list[str]:
                f"{full['inseggan']:.3f}, K-Means {full['kmeans']:.3f}" if full else "") + ".", ""]
 
 
+def _shape_lines(card: dict) -> list[str]:
+    f = card.get("shape")
+    if not f:
+        return []
+    dims = " x ".join(f"{v:.1f}" for v in f["dims_template_mm"])
+    true = " x ".join(f"{v:.1f}" for v in f["dims_true_mm"])
+    return ["## Learned shape", "",
+            f"The learned template against the simulator's true {f['object']} "
+            f"(`inseggan card-shape`): volumetric IoU {f['iou']:.3f} after the best alignment "
+            f"({f['voxel_mm']:.1f} mm voxels){' (the mirror image)' if f['mirrored'] else ''}; "
+            f"length x width x height {dims} mm learned vs {true} mm true (mean relative error "
+            f"{100 * f['dims_rel_error']:.1f} %). Top row the template, bottom row the part, "
+            "seen from the top, the front and the side:", "",
+            "![learned shape vs true part](shape.png)", ""]
+
+
+def add_shape(model_dir, object_name: str | None = None, voxels: int = 30) -> dict:
+    """Measure a shipped model's learned template against the simulator's true part (the card's
+    object, or `object_name`): `shape.fit` at `voxels` voxels along the part's largest extent,
+    the three-view drawing as shape.png, the numbers as card["shape"], README.md written again;
+    the folder is replaced atomically. The template's scale comes from the card's camera and the
+    model's crop, so no data set is needed. -> the shape record."""
+    from . import checkpoint as ckpt
+    from . import shape
+    from .sim.camera import CameraConfig
+    from .sim.objects import OBJECTS
+
+    model_dir = Path(model_dir)
+    card = json.loads((model_dir / "card.json").read_text())
+    name = object_name or card["object"]
+    if name not in OBJECTS:
+        raise ValueError(f"{name!r}: not a part of the simulator's library, so there is no true "
+                         f"shape to compare with; valid: {', '.join(OBJECTS)}")
+    state = ckpt.load(model_dir / "model.pt")
+    if state["model_config"].get("renderer") not in ("spheres", "convex"):
+        raise ValueError(f"{model_dir}: renderer {state['model_config'].get('renderer')!r} has "
+                         "no explicit template; valid: 'spheres' or 'convex'")
+    G = ckpt.build_models(state, model_dir / "model.pt")[1]
+    scale = shape.metres_per_unit(state["preprocess_config"], CameraConfig(**card["camera"]),
+                                  state["model_config"]["height_gain"])
+    truth = shape.part_pieces(name)
+    voxel = float(np.ptp(shape.vertices(truth), axis=0).max()) / voxels
+    template = shape.scaled(shape.template_pieces(G), scale)
+    fit = shape.fit(template, truth, voxel=voxel)
+    card["shape"] = {"object": name, "metres_per_unit": np.round(scale, 6).tolist(),
+                     **fit.to_dict()}
+
+    def write(tmp: Path) -> None:
+        for f in model_dir.iterdir():
+            if f.is_file() and f.name not in ("card.json", "README.md", "shape.png"):
+                shutil.copy2(f, tmp / f.name)
+        shape.three_view(shape.transformed(template, fit.R, fit.t), truth, tmp / "shape.png",
+                         title=f"{card['name']} vs the true {name}: IoU {fit.iou:.3f}")
+        (tmp / "card.json").write_text(json.dumps(card, indent=2))
+        (tmp / "README.md").write_text(card_markdown(card))
+
+    write_folder(model_dir, write)
+    return card["shape"]
+
+
 def _distill_record(state: dict) -> dict | None:
     """What `inseggan distill` did to the encoder of this checkpoint, if anything."""
     d = state.get("distill")
@@ -494,5 +554,6 @@ def card_markdown(card: dict) -> str:
         "",
         *_bag_line(card),
         "![qualitative](qualitative.png)", "",
+        *_shape_lines(card),
     ]
     return "\n".join(lines)

@@ -1,10 +1,12 @@
-r"""How close a learned convex template is to the true part: volumetric IoU after the best
+r"""How close a learned template is to the true part: volumetric IoU after the best
 alignment, dimensions (bounding box along principal axes), and a three-view drawing for model
 cards.
 
 Both bodies are unions of convex pieces given as half-spaces {x : n . x <= d}: the template from
-`ConvexGenerator.halfspaces()` (image half-widths, scaled to metres by `metres_per_unit`), the
-true part from the convex hulls of its collision pieces (`sim.objects`, metres). Occupancy is
+`ConvexGenerator.halfspaces()`, or a rod of spheres (`SphereGenerator.spheres()`) each as the
+polytope of its tangent planes in `SPHERE_FACES` directions (which holds it, and is at most
+about 1 % larger in volume: the rod's IoU is exact to that), in image half-widths, scaled to
+metres by `metres_per_unit`; the true part from the convex hulls of its collision pieces (`sim.objects`, metres). Occupancy is
 tested exactly at voxel centres. Alignment: both bodies' principal axes, then every signed
 permutation of them (24 rotations, 48 with mirror images: training flips the frames, so a
 template may learn the part's mirror image; mirrored fits are reported as such), and turns in
@@ -33,10 +35,30 @@ Pieces = list  # of (normals (P, 3), offsets (P,)) pairs: a union of convex piec
 
 
 # ------------------------------------------------------------------------------ bodies
+SPHERE_FACES = 200  # tangent planes per sphere
+
+
+def _directions(count: int) -> np.ndarray:
+    """`count` unit vectors spread evenly over the sphere (a Fibonacci lattice), (count, 3)."""
+    k = np.arange(count) + 0.5
+    z = 1 - 2 * k / count
+    phi = k * np.pi * (3 - np.sqrt(5))
+    r = np.sqrt(1 - z ** 2)
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], 1)
+
+
 def template_pieces(G) -> Pieces:
-    """A convex generator's template, in its own frame (image half-widths)."""
-    n, d = (t.detach().double().cpu().numpy() for t in G.halfspaces())
-    return [(n[k], d[k]) for k in range(len(n))]
+    """A generator's template in its own frame (image half-widths): a convex template's pieces,
+    or a rod of spheres, each the polytope of its tangent planes."""
+    if hasattr(G, "halfspaces"):
+        n, d = (t.detach().double().cpu().numpy() for t in G.halfspaces())
+        return [(n[k], d[k]) for k in range(len(n))]
+    if not hasattr(G, "spheres"):
+        raise ValueError(f"{type(G).__name__}: no explicit template (valid: renderer 'convex' "
+                         "or 'spheres')")
+    centres, radii = (t.detach().double().cpu().numpy() for t in G.spheres())
+    n = _directions(SPHERE_FACES)
+    return [(n, n @ c + r) for c, r in zip(centres, radii)]
 
 
 def part_pieces(name: str) -> Pieces:
@@ -339,7 +361,7 @@ def three_view(template: Pieces, truth: Pieces, path, title: str = "",
 
 # ------------------------------------------------------------------------------ command line
 def evaluate_generator(G, object_name: str, scale, drawing=None, **fit_kw) -> dict:
-    """Shape fidelity of a convex generator's template against part `object_name`; `scale`:
+    """Shape fidelity of a generator's template (convex or spheres) against part `object_name`; `scale`:
     `metres_per_unit`. Also draws the three views to `drawing` if given."""
     truth = part_pieces(object_name)
     template = scaled(template_pieces(G), scale)
@@ -358,7 +380,7 @@ def main(argv=None) -> int:
     """Command line: print a checkpoint's shape fidelity as JSON, draw its three views."""
     p = argparse.ArgumentParser(prog="python -m inseggan_ros.shape",
                                 description=__doc__.split("\n")[0])
-    p.add_argument("--checkpoint", type=Path, required=True, help="a convex-template model")
+    p.add_argument("--checkpoint", type=Path, required=True, help="a model with an explicit template (convex or spheres)")
     p.add_argument("--object", required=True, help="the true part (sim.objects name)")
     p.add_argument("--data", type=Path, help="the simulated data set (for its camera: the scale)")
     p.add_argument("--drawing", type=Path, help="write the three-view PNG here")
@@ -366,9 +388,10 @@ def main(argv=None) -> int:
     from .checkpoint import build_models, load
 
     state = load(args.checkpoint)
-    if state["model_config"].get("renderer") != "convex":
+    if state["model_config"].get("renderer") not in ("convex", "spheres"):
         raise SystemExit(f"{args.checkpoint}: renderer {state['model_config'].get('renderer')!r}; "
-                         "shape fidelity needs a convex template (renderer 'convex')")
+                         "shape fidelity needs an explicit template (renderer 'convex' or "
+                         "'spheres')")
     G = build_models(state, args.checkpoint)[1]
     camera = None
     if args.data:

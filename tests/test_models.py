@@ -144,3 +144,27 @@ def test_segments_its_sample_bag_better_than_kmeans(folder, request):
             f"{b['kmeans']:.3f} on the sample bag {card['sample_bag']}")))
     ours, km, _ = sample_bag_scores(folder)
     assert ours > km
+
+
+def test_card_shape_adds_the_learned_template_against_the_true_part(tmp):
+    """`inseggan card-shape` on a copy of a shipped model: the card gains the template's IoU
+    with the true part and both sets of dimensions, README.md is that card, shape.png is
+    drawn, and the weights are untouched; a part with no true shape is refused."""
+    import shutil
+
+    from conftest import run_cli
+
+    folder = shutil.copytree(REPO / "models" / "cylinder", tmp / "cylinder")
+    weights = (folder / "model.pt").read_bytes()
+    p = run_cli("card-shape", folder, "--voxels", "12", check=True, timeout=600)
+    assert "volumetric IoU" in p.stdout
+    card = json.loads((folder / "card.json").read_text())
+    f = card["shape"]
+    assert f["object"] == "cylinder" and 0 < f["iou"] <= 1
+    assert f["dims_true_mm"] == pytest.approx([40, 24, 24], abs=1.5)
+    assert len(f["dims_template_mm"]) == 3 and min(f["dims_template_mm"]) > 0
+    assert (folder / "README.md").read_text() == card_markdown(card)
+    assert (folder / "shape.png").stat().st_size > 0
+    assert (folder / "model.pt").read_bytes() == weights
+    p = run_cli("card-shape", folder, "--object", "teapot")
+    assert p.returncode == 2 and "not a part of the simulator's library" in p.stderr, p.stderr

@@ -231,6 +231,36 @@ def test_shape_fidelity_of_known_bodies():
     assert g.iou > 0.95, g.iou
 
 
+def test_a_rod_of_spheres_as_pieces_holds_the_spheres_and_little_else():
+    """The rod's pieces (each sphere as the polytope of its tangent planes) contain every point
+    of the exact union of spheres and exceed it by at most a thin shell; a rod of equal spheres
+    as long as the cylinder part aligns onto it with the IoU of a capsule in a cylinder."""
+    from inseggan_ros.model import SphereGenerator
+
+    G = SphereGenerator(ModelConfig(renderer="spheres", composite="zbuffer", spheres=6))
+    with torch.no_grad():
+        G.radius_shape.copy_(torch.tensor([50.0, -2.0, 0.5, 3.0, -1.0, 2.0]))
+        G.length.fill_(0.5)
+    centres, radii = (t.detach().double().numpy() for t in G.spheres())
+    pieces = shape.template_pieces(G)
+    pts = np.random.default_rng(0).uniform(-0.6, 0.6, (200_000, 3))
+    exact = (np.linalg.norm(pts[:, None] - centres[None], axis=2) <= radii).any(1)
+    approx = shape.occupancy(pieces, pts)
+    assert approx[exact].all()  # the polytopes hold the spheres
+    assert approx.sum() <= 1.03 * exact.sum(), (approx.sum(), exact.sum())
+    # a capsule of 12 mm radius and 40 mm overall length vs the 24 x 40 mm cylinder part
+    with torch.no_grad():
+        G.radius_shape.fill_(50.0)
+        G.log_radius.fill_(math.log(0.012))
+        G.length.fill_(0.040 - 2 * 0.012)
+    f = shape.fit(shape.template_pieces(G), shape.part_pieces("cylinder"), voxel=0.002,
+                  mirror=False, refine_evals=0)
+    np.testing.assert_allclose(f.dims_template_mm, [40, 24, 24], atol=1.0)
+    r, L = 12.0, 40.0 - 24.0  # capsule inside the cylinder: IoU = its volume / the cylinder's
+    expected = (math.pi * r ** 2 * L + 4 / 3 * math.pi * r ** 3) / (math.pi * r ** 2 * 40.0)
+    assert abs(f.iou - expected) < 0.03, (f.iou, expected)
+
+
 def test_scale_from_the_data():
     from inseggan_ros.preprocess import PreprocessConfig, roi_from_camera
     from inseggan_ros.sim.camera import get_camera
