@@ -4,8 +4,8 @@ cards.
 
 Both bodies are unions of convex pieces given as half-spaces {x : n . x <= d}: the template from
 `ConvexGenerator.halfspaces()`, or a rod of spheres (`SphereGenerator.spheres()`) each as the
-polytope of its tangent planes in `SPHERE_FACES` directions (which holds it, and is at most
-about 1 % larger in volume: the rod's IoU is exact to that), in image half-widths, scaled to
+polytope of its tangent planes in `SPHERE_FACES` directions (which holds it, and is 1.6 %
+larger in volume: the rod's IoU is exact to that), in image half-widths, scaled to
 metres by `metres_per_unit`; the true part from the convex hulls of its collision pieces (`sim.objects`, metres). Occupancy is
 tested exactly at voxel centres. Alignment: both bodies' principal axes, then every signed
 permutation of them (24 rotations, 48 with mirror images: training flips the frames, so a

@@ -91,7 +91,7 @@ def test_shipped_sample_bags_are_small_and_readable():
     names = sorted(p.name for p in BAGS.iterdir() if p.is_dir())
     assert len(names) >= 3
     total = sum(f.stat().st_size for f in BAGS.rglob("*") if f.is_file())
-    assert total < 25e6  # five sample bags, none above 8 MB (848 x 480 frames are the largest)
+    assert total < 25e6  # seven sample bags, none above 8 MB (848 x 480 frames are the largest)
     encodings = set()
     for name in names:
         frames = read_all(BAGS / name)
