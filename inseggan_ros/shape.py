@@ -4,16 +4,16 @@ cards.
 
 Both bodies are unions of convex pieces given as half-spaces {x : n . x <= d}: the template from
 `ConvexGenerator.halfspaces()`, or a rod of spheres (`SphereGenerator.spheres()`) each as the
-polytope of its tangent planes in `SPHERE_FACES` directions (which holds it, and is 1.6 %
-larger in volume: the rod's IoU is exact to that), in image half-widths, scaled to
-metres by `metres_per_unit`; the true part from the convex hulls of its collision pieces (`sim.objects`, metres). Occupancy is
-tested exactly at voxel centres. Alignment: both bodies' principal axes, then every signed
-permutation of them (24 rotations, 48 with mirror images: training flips the frames, so a
-template may learn the part's mirror image; mirrored fits are reported as such), and turns in
-10 degree steps about an axis whose other two are undetermined (a nut, a cylinder), centroids
-matched, then a Nelder-Mead refinement of a small rotation and translation. The scale is not
-searched: it is the data's (the bin crop's width in metres over 2 per template unit), so the
-dimensions compare true sizes.
+polytope of its tangent planes in `SPHERE_FACES` directions (which holds it, and is 1.6 % larger
+in volume: the rod's IoU is exact to that), in image half-widths, scaled to metres by
+`metres_per_unit`; the true part from the convex hulls of its collision pieces (`sim.objects`,
+metres). Occupancy is tested exactly at voxel centres. Alignment: both bodies' principal axes,
+then every signed permutation of them (24 rotations, 48 with mirror images: training flips the
+frames, so a template may learn the part's mirror image; mirrored fits are reported as such),
+and turns in 10 degree steps about an axis whose other two are undetermined (a nut, a cylinder),
+centroids matched, then a Nelder-Mead refinement of a small rotation and translation. The scale
+is not searched: it is the data's (the bin crop's width in metres over 2 per template unit), so
+the dimensions compare true sizes.
 
     python -m inseggan_ros.shape --checkpoint runs/block/best.pt --object wooden_block \\
         --data data/wooden_block --drawing three_view.png
@@ -361,8 +361,8 @@ def three_view(template: Pieces, truth: Pieces, path, title: str = "",
 
 # ------------------------------------------------------------------------------ command line
 def evaluate_generator(G, object_name: str, scale, drawing=None, **fit_kw) -> dict:
-    """Shape fidelity of a generator's template (convex or spheres) against part `object_name`; `scale`:
-    `metres_per_unit`. Also draws the three views to `drawing` if given."""
+    """Shape fidelity of a generator's template (convex or spheres) against part
+    `object_name`; `scale`: `metres_per_unit`. Also draws the three views to `drawing` if given."""
     truth = part_pieces(object_name)
     template = scaled(template_pieces(G), scale)
     f = fit(template, truth, **fit_kw)
@@ -380,7 +380,8 @@ def main(argv=None) -> int:
     """Command line: print a checkpoint's shape fidelity as JSON, draw its three views."""
     p = argparse.ArgumentParser(prog="python -m inseggan_ros.shape",
                                 description=__doc__.split("\n")[0])
-    p.add_argument("--checkpoint", type=Path, required=True, help="a model with an explicit template (convex or spheres)")
+    p.add_argument("--checkpoint", type=Path, required=True,
+                   help="a model with an explicit template (convex or spheres)")
     p.add_argument("--object", required=True, help="the true part (sim.objects name)")
     p.add_argument("--data", type=Path, help="the simulated data set (for its camera: the scale)")
     p.add_argument("--drawing", type=Path, help="write the three-view PNG here")
