@@ -131,6 +131,8 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
     if (model is None) == (train_cfg is None):
         raise ValueError("give a trained model, or a training config to learn the shape with "
                          "(not both)")
+    if model is not None:
+        _model_file(model)  # a missing model is named before anything else
     meta = load_meta(data)  # raises with what is wrong
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
