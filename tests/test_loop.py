@@ -86,18 +86,18 @@ def test_one_command_from_unlabelled_frames_learns_the_shape_then_ships_a_model(
     """Without --model the loop trains the shape first (stage `shape`), then goes on from its
     best checkpoint; started again, nothing is redone."""
     user = tmp / "user"
-    run_cli("simulate", "--quiet", "--object", "wooden_block", "--instances", "4", "--count", "72",
-            "--split", "48,12,12", "--seed", "22", *CAMERA, "--workers", "2", "--out", user,
+    run_cli("simulate", "--quiet", "--object", "wooden_block", "--instances", "4", "--count", "48",
+            "--split", "32,8,8", "--seed", "22", *CAMERA, "--workers", "2", "--out", user,
             check=True, timeout=600)
     out = tmp / "loop"
-    args = ["loop", "--data", user, "--out", out, "--train-iterations", "20", "--eval-every",
-            "10", "--scenes", "32", "--val-scenes", "8", "--iterations", "20", "--quiet"]
+    args = ["loop", "--data", user, "--out", out, "--train-iterations", "10", "--eval-every",
+            "5", "--scenes", "16", "--val-scenes", "4", "--iterations", "10", "--quiet"]
     p = run_cli(*args, check=True, timeout=900)
     assert "loop done" in p.stdout and "shape" in p.stdout
     summary = json.loads((out / "summary.json").read_text())
     assert list(summary["seconds"]) == ["shape", "simulate", "encoder", "export"]
     shape = json.loads((out / "shape" / "summary.json").read_text())
-    assert shape["iterations"] == 20
+    assert shape["iterations"] == 10
     # the shipped model carries the template the shape stage learned, at the data set's n
     learned = checkpoint.load(out / "shape" / "best.pt")
     shipped = checkpoint.load(out / "model" / "model.pt")

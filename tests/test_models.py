@@ -156,7 +156,7 @@ def test_card_shape_adds_the_learned_template_against_the_true_part(tmp):
 
     folder = shutil.copytree(REPO / "models" / "cylinder", tmp / "cylinder")
     weights = (folder / "model.pt").read_bytes()
-    p = run_cli("card-shape", folder, "--voxels", "12", check=True, timeout=600)
+    p = run_cli("card-shape", folder, "--voxels", "8", check=True, timeout=600)
     assert "volumetric IoU" in p.stdout
     card = json.loads((folder / "card.json").read_text())
     f = card["shape"]

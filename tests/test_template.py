@@ -253,7 +253,7 @@ def test_a_rod_of_spheres_as_pieces_holds_the_spheres_and_little_else():
         G.radius_shape.fill_(50.0)
         G.log_radius.fill_(math.log(0.012))
         G.length.fill_(0.040 - 2 * 0.012)
-    f = shape.fit(shape.template_pieces(G), shape.part_pieces("cylinder"), voxel=0.002,
+    f = shape.fit(shape.template_pieces(G), shape.part_pieces("cylinder"), voxel=0.0025,
                   mirror=False, refine_evals=0)
     np.testing.assert_allclose(f.dims_template_mm, [40, 24, 24], atol=1.0)
     r, L = 12.0, 40.0 - 24.0  # capsule inside the cylinder: IoU = its volume / the cylinder's
