@@ -179,16 +179,10 @@ def _load_training_data(args):
     """(train, val, preprocess config, description) from a simulated data set or a bag."""
     from . import data as data_mod
     from .preprocess import PreprocessConfig
-    from .sim.dataset import load_meta
 
     if args.data:
-        prep = data_mod.sim_preprocess_config(args.data)
-        train = data_mod.load_sim_split(args.data, "train", prep, limit=args.train_frames,
-                                        progress=not args.quiet)
-        val = data_mod.load_sim_split(args.data, "val", prep, limit=args.val_frames)
-        info = {"source": "simulated data set", "path": str(args.data),
-                "train_frames": len(train["x"]), "val_frames": len(val["x"]),
-                "camera": load_meta(args.data)["scene"]["camera"]}  # the template's scale
+        train, val, prep, info = data_mod.load_sim_training(
+            args.data, args.train_frames, args.val_frames, progress=not args.quiet)
     else:
         roi = tuple(int(v) for v in args.roi.split(",")) if args.roi else None
         prep = PreprocessConfig(roi=roi, min_height=args.min_height, max_height=args.max_height)

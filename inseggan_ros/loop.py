@@ -97,22 +97,17 @@ def learn_shape(data, out, train_cfg, progress: bool = True, val_frames: int = 1
     Skipped when out/summary.json says the run finished; resumed from out/last.pt after a kill."""
     from dataclasses import replace
 
-    from . import data as data_mod
+    from .data import load_sim_training
     from .sim.dataset import load_meta
     from .train import train
 
     out = Path(out)
     if (out / "summary.json").is_file() and (out / "best.pt").is_file():
         return out / "best.pt"
-    scene = load_meta(data)["scene"]
-    train_cfg = replace(train_cfg, model=replace(train_cfg.model,
-                                                 n_instances=int(scene["instances"])))
-    prep = data_mod.sim_preprocess_config(data)
-    frames = data_mod.load_sim_split(data, "train", prep, progress=progress)
+    n = int(load_meta(data)["scene"]["instances"])
+    train_cfg = replace(train_cfg, model=replace(train_cfg.model, n_instances=n))
+    frames, val, prep, info = load_sim_training(data, val_frames=val_frames, progress=progress)
     frames.pop("labels", None)  # the shape is learned without labels
-    val = data_mod.load_sim_split(data, "val", prep, limit=val_frames)
-    info = {"source": "simulated data set", "path": str(data), "train_frames": len(frames["x"]),
-            "val_frames": len(val["x"]), "camera": scene["camera"]}
     train(train_cfg, frames, val, out, prep.to_dict(), info, resume=(out / "last.pt").is_file(),
           progress=progress)
     return out / "best.pt"

@@ -476,19 +476,14 @@ def add_shape(model_dir, object_name: str | None = None, voxels: int = 30) -> di
     G = ckpt.build_models(state, model_dir / "model.pt")[1]
     scale = shape.metres_per_unit(state["preprocess_config"], CameraConfig(**card["camera"]),
                                   state["model_config"]["height_gain"])
-    truth = shape.part_pieces(name)
-    voxel = float(np.ptp(shape.vertices(truth), axis=0).max()) / voxels
-    template = shape.scaled(shape.template_pieces(G), scale)
-    fit = shape.fit(template, truth, voxel=voxel)
-    card["shape"] = {"object": name, "metres_per_unit": np.round(scale, 6).tolist(),
-                     **fit.to_dict()}
+    voxel = float(np.ptp(shape.vertices(shape.part_pieces(name)), axis=0).max()) / voxels
 
     def write(tmp: Path) -> None:
         for f in model_dir.iterdir():
             if f.is_file() and f.name not in ("card.json", "README.md", "shape.png"):
                 shutil.copy2(f, tmp / f.name)
-        shape.three_view(shape.transformed(template, fit.R, fit.t), truth, tmp / "shape.png",
-                         title=f"{card['name']} vs the true {name}: IoU {fit.iou:.3f}")
+        card["shape"] = shape.evaluate_generator(G, name, scale, tmp / "shape.png", voxel=voxel)
+        del card["shape"]["drawing"]  # the folder's shape.png, not the temporary path
         (tmp / "card.json").write_text(json.dumps(card, indent=2))
         (tmp / "README.md").write_text(card_markdown(card))
 

@@ -12,7 +12,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
-from conftest import BAGS, REPO
+from conftest import BAGS, REPO, run_cli
 
 from inseggan_ros import checkpoint, data, evaluate
 from inseggan_ros.metrics import mean_miou
@@ -151,8 +151,6 @@ def test_card_shape_adds_the_learned_template_against_the_true_part(tmp):
     with the true part and both sets of dimensions, README.md is that card, shape.png is
     drawn, and the weights are untouched; a part with no true shape is refused."""
     import shutil
-
-    from conftest import run_cli
 
     folder = shutil.copytree(REPO / "models" / "cylinder", tmp / "cylinder")
     weights = (folder / "model.pt").read_bytes()
