@@ -270,7 +270,7 @@ def cmd_loop(args) -> int:
 
     cfg = LoopConfig(scenes=args.scenes, val_scenes=args.val_scenes, iterations=args.iterations,
                      lr=args.lr, seed=args.seed, workers=args.workers, name=args.name,
-                     user_weight=args.user_weight)
+                     user_weight=args.user_weight, head_iterations=args.head_iterations)
     train_cfg = None
     if args.model is None:
         from .train import get_config
@@ -291,6 +291,27 @@ def cmd_loop(args) -> int:
           + f"); encoder validation mIoU on the simulated scenes {enc['val'][0]['miou']:.3f} -> "
           f"{enc['best_score']:.3f}; model: {args.out}/model (tau {summary['tau']:.2f}), "
           f"card {summary['card']}")
+    return 0
+
+
+def cmd_head(args) -> int:
+    from .label_head import HeadConfig, fit
+    from .paths import resolve_model
+
+    import torch
+
+    torch.set_num_threads(args.threads)
+    cfg = HeadConfig(width=args.width, iterations=args.iterations, lr=args.lr, seed=args.seed,
+                     batch=args.batch,
+                     scale_jitter=args.scale_jitter, shift_jitter=args.shift_jitter,
+                     eval_every=min(250, args.iterations))
+    summary = fit(resolve_model(str(args.model)), args.sim, args.out, cfg, frames=args.frames,
+                  progress=not args.quiet)
+    first = summary["history"][0]["val_miou_zbuffer"]
+    print(f"label head in {summary['seconds'] / 60:.1f} min: validation mIoU on the simulated "
+          f"scenes {first:.3f} (z-buffer) -> {summary['best_val_miou']:.3f} (head); model with "
+          f"the head: {summary['model']} (tau {summary['tau']:.2f}); ship it with `inseggan "
+          "export --checkpoint` it and `--label-head on`")
     return 0
 
 
@@ -701,9 +722,35 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--user-weight", type=float, default=0.0,
                    help="the encoder also reconstructs the data set's own training frames "
                         "(not their labels), with this weight (0: off)")
+    p.add_argument("--head-iterations", type=int, default=0,
+                   help="also train a label head on the same piles for this many iterations "
+                        "and ship the model with it on (0, the default: none; measured: "
+                        "docs/experiments.md, 2026-11-25, a label head)")
     p.add_argument("--name", default="model", help="the exported model's name")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_loop)
+
+    p = sub.add_parser("head", help="train a label head for a model on labelled simulated "
+                                    "scenes (the loop's OUT/sim)")
+    p.add_argument("--model", type=Path, required=True,
+                   help="a checkpoint (the loop's OUT/encoder/best.pt) or model.pt")
+    p.add_argument("--sim", type=Path, required=True,
+                   help="a simulated data set of the model's learned part (train, val)")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--iterations", type=int, default=1000, help="(1000)")
+    p.add_argument("--width", type=int, default=8, help="channels at 64 x 64 (8)")
+    p.add_argument("--batch", type=int, default=32, help="scenes per iteration (32)")
+    p.add_argument("--lr", type=float, default=2e-3)
+    p.add_argument("--scale-jitter", type=float, default=0.0,
+                   help="the template's length and thickness scaled at random by up to 1 + "
+                        "this while training (0: off; 0.3 was worse on the cone)")
+    p.add_argument("--shift-jitter", type=float, default=0.0,
+                   help="instances moved at random by up to this many pixels (0: off)")
+    p.add_argument("--frames", type=int, help="scenes per split at most (default: all)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_head)
 
     p = sub.add_parser("eval", help="InSeGAN vs classical baselines (mIoU table, PNG)")
     p.add_argument("--model", type=Path, required=True)

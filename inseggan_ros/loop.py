@@ -21,7 +21,9 @@ resumes from its last checkpoint; the export writes its folder atomically):
      number of instances of the user's data set (its meta.json);
   2. encoder: the model's encoder fitted to them (`distill.DistillConfig` with the label losses),
      with `--user-weight`, while also reconstructing the user's own unlabelled training frames;
-  3. export: out/model, tau and the card from the user's validation and test frames as if they
+  3. head (only with `head_iterations`): a label head (`label_head.py`) taught on the same
+     piles to correct the z-buffer's labels; the model with it is out/head/model.pt;
+  4. export: out/model, tau and the card from the user's validation and test frames as if they
      had no labels (the test split's labels, where it has them, give the card's mIoU rows).
 Writes out/summary.json with the time of each stage.
 """
@@ -46,6 +48,8 @@ class LoopConfig:
     user_weight: float = 0.0  # reconstruction of the user's own (unlabelled) training frames,
     # mixed into every encoder iteration (`DistillConfig.lambda_user`)
     user_frames: int = 3000  # at most this many of them
+    head_iterations: int = 0  # of a label head on the same scenes (0 = none; it helped the
+    # cone and hurt the pin connector: docs/experiments.md)
     seed: int = 11  # of the simulated scenes
     workers: int = 1  # simulation processes
     name: str = "model"  # the exported model's name
@@ -54,6 +58,9 @@ class LoopConfig:
         for key in ("scenes", "val_scenes", "iterations", "workers", "user_frames"):
             if getattr(self, key) < 1:
                 raise ValueError(f"{key} {getattr(self, key)!r} invalid; valid: >= 1")
+        if self.head_iterations < 0:
+            raise ValueError(f"head_iterations {self.head_iterations!r} invalid; valid: >= 0 "
+                             "(0 = no label head)")
         if not 0 < self.lr < 1:
             raise ValueError(f"lr {self.lr!r} invalid; valid: in (0, 1)")
         if not self.user_weight >= 0:
@@ -113,6 +120,26 @@ def learn_shape(data, out, train_cfg, progress: bool = True, val_frames: int = 1
     return out / "best.pt"
 
 
+def label_head_stage(model: Path, sim: Path, data, out: Path, cfg: LoopConfig,
+                     progress: bool = True) -> Path:
+    """Stage 3: a label head (`label_head.fit`) for the encoder's model on the simulated piles,
+    at the tau the user's validation frames give without their labels (as the export will
+    calibrate it) -> out/model.pt. Skipped when that exists."""
+    from . import data as data_mod
+    from .label_head import HeadConfig, fit
+    from .segment import Segmenter
+    from .selfcheck import calibrate
+
+    if (out / "model.pt").is_file():
+        return out / "model.pt"
+    seg = Segmenter.from_checkpoint(model, device="cpu")
+    calib = data_mod.load_sim_split(data, "val", seg.prep_cfg, limit=200)
+    tau, _ = calibrate(seg, calib["x"], calib["fg"])
+    hcfg = HeadConfig(iterations=cfg.head_iterations, seed=cfg.seed,
+                      eval_every=max(1, min(250, cfg.head_iterations)))
+    return Path(fit(model, sim, out, hcfg, tau=tau, progress=progress)["model"])
+
+
 def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
         train_cfg=None) -> dict:
     """The loop for `model` (its learned template) and the user's data set `data` -> summary
@@ -132,7 +159,8 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     seconds: dict[str, float] = {}
-    stages = tqdm(total=3 if model is not None else 4, desc="loop", unit="stage",
+    stages = tqdm(total=(3 if model is not None else 4) + bool(cfg.head_iterations), desc="loop",
+                  unit="stage",
                   disable=not progress, position=0)
     if model is None:
         t0 = time.monotonic()
@@ -171,8 +199,15 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
     seconds["encoder"] = round(time.monotonic() - t0, 1)
     stages.update(1)
 
+    finished = encoder / "best.pt"
+    if cfg.head_iterations:
+        t0 = time.monotonic()
+        finished = label_head_stage(finished, sim, data, out / "head", cfg, progress)
+        seconds["head"] = round(time.monotonic() - t0, 1)
+        stages.update(1)
+
     t0 = time.monotonic()
-    card = export_from_dataset(encoder / "best.pt", data, cfg.name, out / "model")
+    card = export_from_dataset(finished, data, cfg.name, out / "model")
     seconds["export"] = round(time.monotonic() - t0, 1)
     stages.update(1)
     stages.close()

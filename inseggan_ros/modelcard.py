@@ -71,8 +71,11 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, inference=None,
                                keep=inference.refine_keep)["renders"]
                          for i in range(0, len(x), 50)])
     tau, scores = calibrate_tau(renders, torch.from_numpy(val["fg"]), val["labels"])
+    if state.get("label_head"):  # a label head was trained on the z-buffer labels of its tau
+        tau = float(state["label_head"]["tau"])
     seg.tau = tau
-    val_full = _val_miou(seg, val) if seg.inference.smooth.iters else scores[tau]  # as shipped
+    as_shipped = seg.inference.smooth.iters or seg.inference.label_head == "on"
+    val_full = _val_miou(seg, val) if as_shipped else scores[tau]
 
     # 2. half precision only if it costs nothing measurable
     keep = {k: v for k, v in state.items()
@@ -193,6 +196,8 @@ def export_label_free(checkpoint_path, name: str, out_dir, calib: dict, held: di
     if inference is not None:
         seg.inference = inference
     seg.tau, tau_scores = selfcheck.calibrate(seg, calib["x"], calib["fg"])
+    if state.get("label_head"):  # a label head was trained on the z-buffer labels of its tau
+        seg.tau = float(state["label_head"]["tau"])
     out = selfcheck.segment_frames(seg, held["x"], held["fg"])
     measures = selfcheck.measure(seg, held["x"], held["fg"], out)
     labelled = None
@@ -395,8 +400,9 @@ def _settings_text(d: dict) -> str:
                  f"point(s){keep}")
     precision = ("" if cfg.encoder_precision == "float32"
                  else f", encoder in {cfg.encoder_precision}")
-    return (f"{start}, {smooth.iters} smoothing iterations + {smooth.full_res_active} at full "
-            f"resolution{precision}")
+    head = ", labels from the label head" if cfg.label_head == "on" else ""
+    return (f"{start}{head}, {smooth.iters} smoothing iterations + {smooth.full_res_active} at "
+            f"full resolution{precision}")
 
 
 def _distill_line(card: dict) -> list[str]:

@@ -20,6 +20,7 @@ import torch
 import torch.nn.functional as F
 
 from . import checkpoint
+from .label_head import head_labels, head_from_state
 from .metrics import mean_miou, miou_batch
 from .model import TemplateGenerator
 from .precision import CastEncoder, native_bfloat16
@@ -161,8 +162,9 @@ class Segmenter:
     depth frames in, segmentations out."""
 
     def __init__(self, G, E, model_cfg, prep_cfg, tau: float, device: str = "cpu",
-                 inference: InferenceConfig = InferenceConfig()):
+                 inference: InferenceConfig = InferenceConfig(), label_head=None):
         self.G, self.E = G.eval().to(device), E.eval().to(device)
+        self.label_head = label_head.eval().to(device) if label_head is not None else None
         for p in self.G.parameters():  # test-time refinement optimises codes, never weights
             p.requires_grad_(False)
         self.model_cfg, self.prep_cfg, self.tau, self.device = model_cfg, prep_cfg, tau, device
@@ -202,9 +204,18 @@ class Segmenter:
             inference = InferenceConfig.from_dict(state.get("inference", {}))
         except (TypeError, ValueError) as e:
             raise checkpoint.CheckpointError(f"{path}: bad inference settings ({e})") from None
+        head = None
+        if state.get("label_head") is not None:
+            try:
+                head = head_from_state(state["label_head"])
+            except (KeyError, TypeError, ValueError, RuntimeError) as e:
+                raise checkpoint.CheckpointError(f"{path}: bad label head ({e})") from None
+        elif inference.label_head == "on":
+            raise checkpoint.CheckpointError(f"{path}: its settings use a label head it does not "
+                                             "have (label_head: on)")
         tau = float(state.get("tau", -0.5) if tau is None else tau)
         return Segmenter(G, E, cfg, prep, tau, device=checkpoint.pick_device(device),
-                         inference=inference)
+                         inference=inference, label_head=head)
 
     @torch.no_grad()
     def segment_batch(self, x: np.ndarray | torch.Tensor, fg=None, tau: float | None = None,
@@ -219,6 +230,10 @@ class Segmenter:
                     keep=cfg.refine_keep)
         fg_t = (x[:, 0] > -1 + 1e-4) if fg is None else torch.as_tensor(fg, device=self.device)
         labels = labels_from_renders(out["renders"], tau, fg_t)
+        if cfg.label_head == "on":
+            if self.label_head is None:
+                raise ValueError("label_head on: this model has no label head; valid: off")
+            labels = head_labels(self.label_head, x, out["renders"], labels, fg_t)
         labels = smooth_labels(labels, x, out["renders"].shape[1], cfg.smooth)
         out["labels"] = labels
         out["scores"] = instance_scores(out["renders"], labels, tau)

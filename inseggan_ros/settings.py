@@ -20,6 +20,8 @@ from pathlib import Path
 # The encoder's arithmetic: float32, bfloat16 (faster where the CPU or GPU computes it natively,
 # e.g. AVX512-BF16), or auto: bfloat16 where native, else float32 (emulated bfloat16 is slower).
 PRECISIONS = ("float32", "bfloat16", "auto")
+# Where the labels come from: the label head (`label_head.py`) or the z-buffer alone.
+LABEL_HEAD = ("on", "off")
 
 
 def _doc(text: str, lo: int | None = None, hi: int | None = None,
@@ -77,6 +79,10 @@ class InferenceConfig:
     refine_keep: int = field(default=0, metadata=_doc(
         "how many of the starting points, the best-fitting first, are refined (0 = all; the "
         "refinement's time grows about in proportion)", 0, 32))
+    label_head: str = field(default="off", metadata=_doc(
+        "the labels from the model's label head (on: each pixel moved to the instance the head "
+        "scores highest, given the input and the renders; models without a head: off) or "
+        "straight from the z-buffer (off)", choices=LABEL_HEAD))
     smooth: SmoothConfig = SmoothConfig(iters=0)
     encoder_precision: str = field(default="float32", metadata=_doc(
         "the encoder's arithmetic: float32, bfloat16, or auto (bfloat16 where the CPU or GPU "
@@ -88,7 +94,8 @@ class InferenceConfig:
                 ("refine_hypotheses", self.refine_hypotheses >= 1, ">= 1"),
                 ("refine_keep", self.refine_keep >= 0, ">= 0 (0 = all starting points)"),
                 ("encoder_precision", self.encoder_precision in PRECISIONS,
-                 ", ".join(PRECISIONS))):
+                 ", ".join(PRECISIONS)),
+                ("label_head", self.label_head in LABEL_HEAD, ", ".join(LABEL_HEAD))):
             if not ok:
                 raise ValueError(f"{name} {getattr(self, name)!r} invalid; valid: {valid}")
 

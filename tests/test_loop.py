@@ -41,11 +41,14 @@ def test_a_tiny_loop_explains_held_out_scenes_of_its_shape_better_than_its_start
             "--workers", "2", "--out", user, check=True, timeout=600)
     out = tmp / "loop"
     args = ["loop", "--model", MODEL, "--data", user, "--out", out, "--scenes", "96",
-            "--val-scenes", "16", "--iterations", "150", "--quiet"]
+            "--val-scenes", "16", "--iterations", "150", "--head-iterations", "20", "--quiet"]
     p = run_cli(*args, check=True, timeout=900)
     assert "loop done" in p.stdout
     summary = json.loads((out / "summary.json").read_text())
-    assert set(summary["seconds"]) == {"simulate", "encoder", "export"}
+    assert set(summary["seconds"]) == {"simulate", "encoder", "head", "export"}
+    shipped = checkpoint.load(out / "model" / "model.pt")  # with its label head, switched on
+    assert shipped["label_head"]["width"] == 8 and shipped["inference"]["label_head"] == "on"
+    assert shipped["tau"] == shipped["label_head"]["tau"]  # the tau the head was trained for
     card = json.loads((out / "model" / "card.json").read_text())
     assert card["label_free"] and card["labelled"]["frames"] == 20  # the user's test frames
     assert (out / "model" / "model.pt").is_file() and (out / "model" / "qualitative.png").is_file()
@@ -66,8 +69,10 @@ def test_a_tiny_loop_explains_held_out_scenes_of_its_shape_better_than_its_start
     # started again after a complete run: every stage's result is there, nothing is redone
     stamp = (out / "encoder" / "last.pt").stat().st_mtime_ns
     sim_meta = (out / "sim" / "meta.json").stat().st_mtime_ns
+    head = (out / "head" / "model.pt").stat().st_mtime_ns
     run_cli(*args, check=True, timeout=600)
     assert (out / "encoder" / "last.pt").stat().st_mtime_ns == stamp
+    assert (out / "head" / "model.pt").stat().st_mtime_ns == head
     assert (out / "sim" / "meta.json").stat().st_mtime_ns == sim_meta
     assert np.isfinite(json.loads((out / "summary.json").read_text())["tau"])
 

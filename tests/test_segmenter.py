@@ -234,6 +234,11 @@ def test_parameter_changes_are_validated_at_run_time():
         assert set_("encoder_precision", "'bfloat16'") == "ok"
         assert set_("encoder_precision", "'float16'") == (
             "rejected: encoder_precision 'float16' invalid; valid: float32, bfloat16, auto")
+        # the shipped cylinder model has no label head
+        assert set_("label_head", "'on'") == (
+            "rejected: label_head on: this model has no label head; valid: off")
+        assert set_("label_head", "'maybe'").startswith("rejected: label_head 'maybe' invalid")
+        assert set_("label_head", "'off'") == "ok"
     finally:
         assert stop(seg) == 0
 

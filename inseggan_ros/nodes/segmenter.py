@@ -328,7 +328,9 @@ class SegmenterNode(Node):
     def _apply(self, values: dict) -> None:
         """Validate a full parameter set and make it current (raises ConfigError)."""
         new = {**self.p, **values}
-        settings.apply(self.model.inference, new)  # raises ValueError naming a bad setting
+        inference = settings.apply(self.model.inference, new)  # ValueError naming a bad one
+        if inference.label_head == "on" and self.model.label_head is None:
+            raise ConfigError("label_head on: this model has no label head; valid: off")
         roi = _parse_roi(new["roi"])
         polygon = _parse_polygon(new["bin_polygon"])
         floor = float(new["floor_depth"])
