@@ -1,5 +1,6 @@
-"""The label head: slots matched to true instances, the same for any slot order, trained on
-labelled simulated scenes until it labels held-out ones better, shipped inside a model."""
+"""The label head: slots matched to true instances, the same for any slot order, refused where a
+model has none, trained on labelled simulated scenes until it explains held-out ones better,
+shipped inside a model."""
 import json
 from dataclasses import replace
 
@@ -67,12 +68,12 @@ def _held_out_loss(head, args, targets) -> float:
 
 
 def test_a_short_training_run_explains_held_out_scenes_better_and_ships_in_the_model(tmp):
-    """`inseggan head` on 120 labelled scenes of a part, 100 iterations of 8: on held-out scenes
+    """`inseggan head` on 80 labelled scenes of a part, 100 iterations of 8: on held-out scenes
     its cross-entropy falls well below the untrained head's (which gives the z-buffer's labels)
     and its labels are no worse; the model it writes segments with it."""
     sim = tmp / "sim"
-    run_cli("simulate", "--quiet", "--object", "cylinder", "--count", "150", "--split",
-            "120,30,0", "--seed", "31", "--workers", "2", "--out", sim, check=True, timeout=600)
+    run_cli("simulate", "--quiet", "--object", "cylinder", "--count", "100", "--split",
+            "80,20,0", "--seed", "31", "--workers", "2", "--out", sim, check=True, timeout=600)
     out = tmp / "head"
     p = run_cli("head", "--model", "cylinder", "--sim", sim, "--out", out, "--iterations",
                 "100", "--batch", "8", "--quiet", check=True, timeout=600)
@@ -97,3 +98,10 @@ def test_a_short_training_run_explains_held_out_scenes_better_and_ships_in_the_m
     # the segmenter's own path: labels through the model with its head
     out_seg = seg.segment_batch(val["x"][:4], val["fg"][:4])
     assert miou_of(out_seg["labels"].numpy(), val["labels"][:4]) > 0.5
+
+
+def test_inseggan_head_names_a_data_set_without_scenes(tmp):
+    p = run_cli("head", "--model", "cylinder", "--sim", tmp / "none", "--out", tmp / "o")
+    assert p.returncode == 2 and "meta.json" in p.stderr, p.stderr
+    p = run_cli("head", "--model", tmp / "none.pt", "--sim", tmp, "--out", tmp / "o")
+    assert p.returncode == 2 and "none.pt" in p.stderr, p.stderr

@@ -1,5 +1,6 @@
-"""`inseggan loop`: a model's learned shape simulated, its encoder fitted to those labelled
-piles, the result shipped with a card from the user's frames; resumable stage by stage."""
+"""`inseggan loop`: a model's learned shape simulated, its encoder (and a label head) fitted to
+those labelled piles, the result shipped with a card from the user's frames; resumable stage by
+stage."""
 import json
 from pathlib import Path
 
@@ -41,12 +42,13 @@ def test_a_tiny_loop_explains_held_out_scenes_of_its_shape_better_than_its_start
             "--workers", "2", "--out", user, check=True, timeout=600)
     out = tmp / "loop"
     args = ["loop", "--model", MODEL, "--data", user, "--out", out, "--scenes", "96",
-            "--val-scenes", "16", "--iterations", "150", "--head-iterations", "20", "--quiet"]
+            "--val-scenes", "16", "--iterations", "150", "--head-iterations", "10", "--quiet"]
     p = run_cli(*args, check=True, timeout=900)
     assert "loop done" in p.stdout
     summary = json.loads((out / "summary.json").read_text())
     assert set(summary["seconds"]) == {"simulate", "encoder", "head", "export"}
-    shipped = checkpoint.load(out / "model" / "model.pt")  # with its label head, switched on
+    # with its label head (trained in tests/test_label_head.py), switched on
+    shipped = checkpoint.load(out / "model" / "model.pt")
     assert shipped["label_head"]["width"] == 8 and shipped["inference"]["label_head"] == "on"
     assert shipped["tau"] == shipped["label_head"]["tau"]  # the tau the head was trained for
     card = json.loads((out / "model" / "card.json").read_text())
