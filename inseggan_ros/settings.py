@@ -79,14 +79,14 @@ class InferenceConfig:
     refine_keep: int = field(default=0, metadata=_doc(
         "how many of the starting points, the best-fitting first, are refined (0 = all; the "
         "refinement's time grows about in proportion)", 0, 32))
-    label_head: str = field(default="off", metadata=_doc(
-        "the labels from the model's label head (on: each pixel moved to the instance the head "
-        "scores highest, given the input and the renders; models without a head: off) or "
-        "straight from the z-buffer (off)", choices=LABEL_HEAD))
     smooth: SmoothConfig = SmoothConfig(iters=0)
     encoder_precision: str = field(default="float32", metadata=_doc(
         "the encoder's arithmetic: float32, bfloat16, or auto (bfloat16 where the CPU or GPU "
         "computes it natively, else float32)", choices=PRECISIONS))
+    label_head: str = field(default="off", metadata=_doc(
+        "the labels from the model's label head (on: each pixel moved to the instance the head "
+        "scores highest, given the input and the renders; models without a head: off) or "
+        "straight from the z-buffer (off)", choices=LABEL_HEAD))
 
     def __post_init__(self):
         for name, ok, valid in (

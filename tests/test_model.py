@@ -381,7 +381,7 @@ def test_settings_have_one_name_as_field_parameter_and_flag():
 
     names = [s.name for s in settings.exposed()]
     assert names == ["refine_steps", "refine_hypotheses", "refine_keep", "smooth_iters",
-                     "smooth_full_res_iters", "encoder_precision"]
+                     "smooth_full_res_iters", "encoder_precision", "label_head"]
     parser = argparse.ArgumentParser()
     settings.add_flags(parser, "(default: the model's)")
     args = parser.parse_args(["--refine-hypotheses", "8", "--smooth-full-res-iters", "0",
