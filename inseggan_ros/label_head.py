@@ -152,6 +152,7 @@ def proposals(segmenter, x: np.ndarray, fg: np.ndarray, batch: int = 100) -> tup
     """The segmenter's proposals with its settings (float32 encoder), before any head or
     smoothing: -> {"renders": (N, n, 64, 64), "labels": z-buffer (N, 64, 64) uint8, "pose":
     (N, n, 6) or None for templates without explicit poses}."""
+    from .model import TemplateGenerator
     from .segment import infer, labels_from_renders
 
     cfg = segmenter.inference
@@ -165,6 +166,9 @@ def proposals(segmenter, x: np.ndarray, fg: np.ndarray, batch: int = 100) -> tup
                                           torch.from_numpy(fg[i:i + batch])))
         if "pose" in out:
             poses.append(out["pose"])
+        elif isinstance(segmenter.G, TemplateGenerator):  # one start: the encoder's codes
+            z = out["z"]
+            poses.append(segmenter.G.pose(z.reshape(-1, z.shape[-1])).reshape(*z.shape[:2], 6))
     return {"renders": torch.cat(renders).numpy(), "labels": torch.cat(labels).numpy(),
             "pose": torch.cat(poses).numpy() if poses else None}
 
