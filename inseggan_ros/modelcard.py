@@ -63,19 +63,23 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, inference=None,
     val = data_mod.load_sim_split(data_root, "val", seg.prep_cfg, limit=frames)
     test = data_mod.load_sim_split(data_root, "test", seg.prep_cfg, limit=frames)
 
-    # 1. tau with the shipped inference settings (on the z-buffered labels, before smoothing)
-    x = torch.from_numpy(val["x"])
-    renders = torch.cat([infer(seg.G, seg.encoder(inference.encoder_precision), x[i:i + 50],
-                               refine_steps=inference.refine_steps,
-                               hypotheses=inference.refine_hypotheses,
-                               keep=inference.refine_keep)["renders"]
-                         for i in range(0, len(x), 50)])
-    tau, scores = calibrate_tau(renders, torch.from_numpy(val["fg"]), val["labels"])
-    if state.get("label_head"):  # a label head was trained on the z-buffer labels of its tau
+    # 1. tau with the shipped inference settings (on the z-buffered labels, before smoothing),
+    # unless a label head was trained on the z-buffer labels of its own tau
+    scores = {}
+    if state.get("label_head"):
         tau = float(state["label_head"]["tau"])
+    else:
+        x = torch.from_numpy(val["x"])
+        renders = torch.cat([infer(seg.G, seg.encoder(inference.encoder_precision), x[i:i + 50],
+                                   refine_steps=inference.refine_steps,
+                                   hypotheses=inference.refine_hypotheses,
+                                   keep=inference.refine_keep)["renders"]
+                             for i in range(0, len(x), 50)])
+        tau, scores = calibrate_tau(renders, torch.from_numpy(val["fg"]), val["labels"])
     seg.tau = tau
-    as_shipped = seg.inference.smooth.iters or seg.inference.label_head == "on"
-    val_full = _val_miou(seg, val) if as_shipped else scores[tau]
+    # as shipped: the calibration's own score where the labels are the z-buffer's alone
+    plain = not seg.inference.smooth.iters and seg.inference.label_head == "off"
+    val_full = scores[tau] if plain and tau in scores else _val_miou(seg, val)
 
     # 2. half precision only if it costs nothing measurable
     keep = {k: v for k, v in state.items()
