@@ -99,24 +99,10 @@ def _add_scene_args(p: argparse.ArgumentParser) -> None:
 def _camera_from_bag(args):
     """--camera-from: (camera, bin inner size, one line saying so) estimated from a bag's
     depth frames and their camera info (sim.user_camera)."""
-    from .bags import read_frames
-    from .sim.user_camera import estimate_camera
+    from .sim.user_camera import camera_from_bag
 
-    frames = list(read_frames(args.camera_from, depth_topic=args.topic, limit=30))
-    info = next((f.camera_info for f in reversed(frames) if f.camera_info is not None), None)
-    if info is None:
-        raise ValueError(f"{args.camera_from}: no sensor_msgs/CameraInfo beside the depth "
-                         "topic, so no intrinsics to simulate with; valid: a bag with a "
-                         "sensor_msgs/CameraInfo beside the depth topic, or --camera PRESET")
-    cam, est = estimate_camera([f.metres() for f in frames], info)
-    size = est["bin_inner_size"]
-    line = (f"camera from {args.camera_from} ({est['frames']} frames): {cam.width}x{cam.height} "
-            f"fx {cam.fx:.1f} fy {cam.fy:.1f} cx {cam.cx:.1f} cy {cam.cy:.1f}, mount height "
-            f"{cam.mount_height:.4f} m, tilt {cam.tilt:.2f} deg, roll {cam.roll:.2f} deg, bin "
-            f"offset ({cam.bin_offset[0]:.3f}, {cam.bin_offset[1]:.3f}), bin inner size "
-            f"{size[0]:.3f} x {size[1]:.3f} m"
-            + ("" if all(est["walls_found"]) else " (walls not all in view: from the floor seen)"))
-    return cam, size, line
+    cam, est, line = camera_from_bag(args.camera_from, args.topic)
+    return cam, est["bin_inner_size"], line
 
 
 def cmd_simulate(args) -> int:
@@ -266,7 +252,7 @@ def cmd_distill(args) -> int:
 
 
 def cmd_loop(args) -> int:
-    from .loop import LoopConfig, run
+    from .loop import BagFrames, LoopConfig, run
 
     cfg = LoopConfig(scenes=args.scenes, val_scenes=args.val_scenes, iterations=args.iterations,
                      lr=args.lr, seed=args.seed, workers=args.workers, name=args.name,
@@ -282,8 +268,20 @@ def cmd_loop(args) -> int:
     elif args.train_minutes is not None or args.train_iterations is not None:
         raise ValueError("--train-minutes/--train-iterations learn the shape first: without "
                          "--model only")
+    if args.bag is not None:
+        if args.instances is None:
+            raise ValueError("--bag needs --instances N (the parts in the bin: the piles are "
+                             "simulated with that many)")
+        frames = BagFrames(args.bag, args.instances, args.topic, args.labels_topic,
+                           args.noise or "none", args.held_out)
+    else:
+        only_bag = ("instances", "topic", "labels_topic", "noise")
+        given = [f"--{k.replace('_', '-')}" for k in only_bag if getattr(args, k) is not None]
+        if given:
+            raise ValueError(f"{', '.join(given)} go with --bag; a data set names its own")
+        frames = args.data
     t0 = time.perf_counter()
-    summary = run(args.model, args.data, args.out, cfg, progress=not args.quiet,
+    summary = run(args.model, frames, args.out, cfg, progress=not args.quiet,
                   train_cfg=train_cfg)
     enc = summary["encoder"]
     print(f"loop done in {(time.perf_counter() - t0) / 60:.1f} min ("
@@ -709,9 +707,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--train-seed", type=int, default=1)
     p.add_argument("--eval-every", type=int, default=100,
                    help="without --model: validate and checkpoint every N iterations (100)")
-    p.add_argument("--data", type=Path, required=True,
-                   help="the user's data set (its camera, noise and bin are simulated; its val "
-                        "and test frames make the card, without their labels)")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--data", type=Path,
+                     help="the user's data set (its camera, noise and bin are simulated; its "
+                          "val and test frames make the card, without their labels)")
+    src.add_argument("--bag", type=Path,
+                     help="the user's recording (depth and CameraInfo, no labels): its camera "
+                          "and bin are estimated and simulated; its last frames (--held-out) "
+                          "make the card")
+    p.add_argument("--instances", type=int,
+                   help="with --bag (required): the parts in the bin")
+    p.add_argument("--topic", help="with --bag: the depth topic (default: the only one)")
+    p.add_argument("--labels-topic", help="with --bag: a label image topic, for the card's "
+                                          "mIoU rows only (never trained on)")
+    p.add_argument("--noise", help="with --bag: the simulator's noise preset for the piles "
+                                   "(none)")
+    p.add_argument("--held-out", type=float, default=0.2,
+                   help="with --bag: the last fraction of its frames, kept for the card (0.2)")
     p.add_argument("--out", type=Path, required=True, help="run directory (resumable)")
     p.add_argument("--scenes", type=int, default=3000, help="simulated training scenes (3000)")
     p.add_argument("--val-scenes", type=int, default=200)

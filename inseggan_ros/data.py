@@ -80,18 +80,23 @@ def _store(out: dict, i: int, depth_m: np.ndarray, labels: np.ndarray | None,
 
 
 def load_sim_split(root, split: str, cfg: PreprocessConfig | None = None,
-                   limit: int | None = None, progress: bool = False) -> dict:
+                   limit: int | None = None, progress: bool = False,
+                   as_given: bool = False) -> dict:
     """Every scene of one split of a simulated data set (`inseggan simulate`), preprocessed.
 
     cfg.roi / cfg.floor_depth left None are taken from the data set (see the module docstring);
-    cfg None = `sim_preprocess_config(root)`. `limit` keeps the first scenes only."""
+    cfg None = `sim_preprocess_config(root)`. With `as_given`, cfg is used as it is: what it
+    leaves None is found in every frame, as for a bag (simulated piles of a part learned from a
+    bag, seen as that bag's frames were). `limit` keeps the first scenes only."""
     meta = load_meta(root)
     if split not in SPLITS:
         raise ValueError(f"unknown split {split!r}; valid: {', '.join(SPLITS)}")
     if limit is not None and limit < 0:
         raise ValueError(f"limit must be >= 0 or None, got {limit}")
     known = sim_preprocess_config(meta)
-    cfg = known if cfg is None else replace(
+    if as_given and cfg is None:
+        raise ValueError("as_given needs a preprocessing config")
+    cfg = cfg if as_given else known if cfg is None else replace(
         cfg, roi=cfg.roi if cfg.roi is not None else known.roi,
         floor_depth=cfg.floor_depth if cfg.floor_depth is not None else known.floor_depth)
     n = int(meta["counts"][split]) if limit is None else min(limit, int(meta["counts"][split]))

@@ -299,13 +299,15 @@ def head_from_state(state: dict) -> LabelHead:
 
 
 def fit(model, sim, out, cfg: HeadConfig = HeadConfig(), tau: float | None = None,
-        frames: int | None = None, progress: bool = True) -> dict:
+        frames: int | None = None, progress: bool = True, as_given: bool = False) -> dict:
     """A label head for `model` (a checkpoint) from the labelled scenes of the simulated data
     set `sim` (its train split to learn from, its val split to choose the best iteration):
     out/head.pt, out/summary.json, and out/model.pt, the model with the head and its settings
     switched to it (`label_head: on`) at the tau it was trained for (`tau`, default the
-    model's: the z-buffer labels the head corrects depend on it). Resumes nothing: a run takes
-    minutes. -> the summary, with "model"."""
+    model's: the z-buffer labels the head corrects depend on it). `as_given`: the scenes are
+    cut as the model's preprocessing says, the bin found in every frame where it names none
+    (`data.load_sim_split`; a model learned from a bag). Resumes nothing: a run takes minutes.
+    -> the summary, with "model"."""
     from dataclasses import replace
 
     from . import checkpoint
@@ -319,7 +321,8 @@ def fit(model, sim, out, cfg: HeadConfig = HeadConfig(), tau: float | None = Non
     seg.inference = replace(seg.inference, label_head="off")  # proposals: the z-buffer's
     splits = {}
     for split in ("train", "val"):
-        d = load_sim_split(sim, split, seg.prep_cfg, limit=frames, progress=progress)
+        d = load_sim_split(sim, split, seg.prep_cfg, limit=frames, progress=progress,
+                           as_given=as_given)
         if len(d["x"]) == 0:
             raise ValueError(f"{sim}: no scenes in its {split} split; valid: a simulated data "
                              "set with train and val scenes (`inseggan simulate`, the loop's "

@@ -10,6 +10,15 @@ unlabelled frames), so one command goes from frames to a shipped model:
 
     inseggan loop --model runs/my_part/best.pt --data data/my_part --out runs/my_part_loop
     inseggan loop --data data/my_part --out runs/my_part_loop --train-minutes 40   # all of it
+    inseggan loop --bag my_recording --instances 6 --out runs/my_part_loop --train-minutes 40
+
+The user's frames are a simulated data set (`--data`: its meta.json names the camera, noise, bin
+and instance count) or a recording (`--bag`, `BagFrames`: the camera and bin are estimated from
+its depth frames and CameraInfo, `sim.user_camera`; the instance count and the sensor noise
+preset are the user's to give). A bag's last `held_out` fraction of frames (in time order) is
+kept out of everything but the card, as `inseggan export --bag` does; the piles of the learned
+part are cut as the bag's frames are (the bin found in every frame, unless the model names a
+region), so that the template meets them at the scale it was learned at.
 
 Stages, each skipped when a killed run is started again and its result is there (the
 simulation is written to a temporary folder and renamed when complete; the encoder's training
@@ -18,13 +27,14 @@ resumes from its last checkpoint; the export writes its folder atomically):
      validation by reconstruction when the data set has none) into out/shape, for the training
      config's budget; a killed run resumes from out/shape/last.pt; its best.pt is the model;
   1. simulate: `--scenes` labelled scenes of the learned part, with the camera, noise, bin and
-     number of instances of the user's data set (its meta.json);
+     number of instances of the user's data set (its meta.json) or bag;
   2. encoder: the model's encoder fitted to them (`distill.DistillConfig` with the label losses),
      with `--user-weight`, while also reconstructing the user's own unlabelled training frames;
   3. head (only with `head_iterations`): a label head (`label_head.py`) taught on the same
      piles to correct the z-buffer's labels; the model with it is out/head/model.pt;
   4. export: out/model, tau and the card from the user's validation and test frames as if they
-     had no labels (the test split's labels, where it has them, give the card's mIoU rows).
+     had no labels (the test split's labels, where it has them, give the card's mIoU rows); for
+     a bag, its frames before and after the held-out cut (labels from `labels_topic` only).
 Writes out/summary.json with the time of each stage.
 """
 from __future__ import annotations
@@ -34,7 +44,13 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from typing import TYPE_CHECKING
+
+import numpy as np
 from tqdm import tqdm
+
+if TYPE_CHECKING:
+    from .sim.scene import SceneConfig
 
 
 @dataclass(frozen=True)
@@ -65,6 +81,66 @@ class LoopConfig:
             raise ValueError(f"lr {self.lr!r} invalid; valid: in (0, 1)")
         if not self.user_weight >= 0:
             raise ValueError(f"user_weight {self.user_weight!r} invalid; valid: >= 0")
+
+
+@dataclass(frozen=True)
+class BagFrames:
+    """A user's recording as the loop's frames: a rosbag2 bag (MCAP or sqlite3) of depth images
+    with a sensor_msgs/CameraInfo beside them, no labels needed."""
+    path: Path
+    instances: int  # parts in the bin: the simulated piles hold this many
+    topic: str | None = None  # the depth topic (None: the bag's only depth topic)
+    labels_topic: str | None = None  # a label image topic, for the card's mIoU rows only
+    noise: str = "none"  # the simulator's sensor noise preset for the piles (`sim.noise`)
+    held_out: float = 0.2  # the last fraction of the frames: the card's, nothing else's
+
+    def __post_init__(self):
+        from .sim.noise import NOISE_PRESETS
+
+        if not 1 <= self.instances <= 20:
+            raise ValueError(f"instances {self.instances!r} invalid; valid: 1..20 (the parts "
+                             "in the bin)")
+        if self.noise not in NOISE_PRESETS:
+            raise ValueError(f"noise {self.noise!r} invalid; valid: {', '.join(NOISE_PRESETS)}")
+        if not 0 < self.held_out < 1:
+            raise ValueError(f"held_out {self.held_out!r} invalid; valid: between 0 and 1")
+        object.__setattr__(self, "path", Path(self.path))
+
+    def frames(self, prep) -> tuple[dict, dict]:
+        """(the frames before the held-out cut, the held-out ones), preprocessed with `prep`
+        (`data.load_bag`; labels only from `labels_topic`)."""
+        from . import selfcheck
+
+        frames = selfcheck.load_bag_frames(self.path, prep, self.topic, self.labels_topic)
+        n = len(frames["x"])
+        k = int(round(n * self.held_out))
+        if k < 1 or n - k < 2:
+            raise ValueError(f"{self.path}: {n} frames are too few; valid: enough that the last "
+                             f"{100 * self.held_out:.0f} % (held out) is a frame or more and "
+                             "two or more are left to learn from")
+
+        def part(sl):
+            return {key: (v[sl] if isinstance(v, np.ndarray) else v) for key, v in frames.items()}
+
+        return part(slice(None, n - k)), part(slice(n - k, None))
+
+    def scene(self, part) -> "SceneConfig":
+        """The simulator's scene: `part` piled `instances` times in the bin the bag shows, seen
+        by the camera its frames and CameraInfo give, with the noise preset."""
+        from dataclasses import replace
+
+        from .sim.noise import get_noise
+        from .sim.scene import SceneConfig
+        from .sim.user_camera import camera_from_bag
+
+        cam, est, _ = camera_from_bag(self.path, self.topic)
+        scene = SceneConfig(object=str(part), instances=self.instances, camera=cam,
+                            noise=get_noise(self.noise))
+        return replace(scene, bin=replace(scene.bin, inner_size=tuple(est["bin_inner_size"])))
+
+    def describe(self) -> dict:
+        return {"kind": "bag", **{k: str(v) if isinstance(v, Path) else v
+                                  for k, v in asdict(self).items()}}
 
 
 def _model_file(model) -> Path:
@@ -99,7 +175,7 @@ def _as_list(v):
 
 
 def learn_shape(data, out, train_cfg, progress: bool = True, val_frames: int = 100) -> Path:
-    """Stage 0: learn the part's shape from the data set's unlabelled training frames with
+    """Stage 0: learn the part's shape from the user's unlabelled training frames with
     `train_cfg` (a `train.TrainConfig`; its instance count is the data set's) -> out/best.pt.
     Skipped when out/summary.json says the run finished; resumed from out/last.pt after a kill."""
     from dataclasses import replace
@@ -111,10 +187,21 @@ def learn_shape(data, out, train_cfg, progress: bool = True, val_frames: int = 1
     out = Path(out)
     if (out / "summary.json").is_file() and (out / "best.pt").is_file():
         return out / "best.pt"
-    n = int(load_meta(data)["scene"]["instances"])
+    if isinstance(data, BagFrames):  # the bin found in every frame, as `inseggan train --bag`
+        from .preprocess import PreprocessConfig
+
+        n, prep = data.instances, PreprocessConfig()
+        frames, val = data.frames(prep)
+        val = {k: (v[:val_frames] if isinstance(v, np.ndarray) else v) for k, v in val.items()}
+        info = {"source": "bag", "path": str(data.path), "topic": data.topic,
+                "train_frames": len(frames["x"]), "val_frames": len(val["x"])}
+    else:
+        n = int(load_meta(data)["scene"]["instances"])
+        frames, val, prep, info = load_sim_training(data, val_frames=val_frames,
+                                                    progress=progress)
     train_cfg = replace(train_cfg, model=replace(train_cfg.model, n_instances=n))
-    frames, val, prep, info = load_sim_training(data, val_frames=val_frames, progress=progress)
     frames.pop("labels", None)  # the shape is learned without labels
+    val.pop("labels", None)
     train(train_cfg, frames, val, out, prep.to_dict(), info, resume=(out / "last.pt").is_file(),
           progress=progress)
     return out / "best.pt"
@@ -133,20 +220,28 @@ def label_head_stage(model: Path, sim: Path, data, out: Path, cfg: LoopConfig,
     if (out / "model.pt").is_file():
         return out / "model.pt"
     seg = Segmenter.from_checkpoint(model, device="cpu")
-    calib = data_mod.load_sim_split(data, "val", seg.prep_cfg, limit=200)
+    if isinstance(data, BagFrames):
+        calib = data.frames(seg.prep_cfg)[0]
+        calib = {k: calib[k][:200] for k in ("x", "fg")}
+    else:
+        calib = data_mod.load_sim_split(data, "val", seg.prep_cfg, limit=200)
     tau, _ = calibrate(seg, calib["x"], calib["fg"])
     hcfg = HeadConfig(iterations=cfg.head_iterations, seed=cfg.seed,
                       eval_every=max(1, min(250, cfg.head_iterations)))
-    return Path(fit(model, sim, out, hcfg, tau=tau, progress=progress)["model"])
+    return Path(fit(model, sim, out, hcfg, tau=tau, progress=progress,
+                    as_given=isinstance(data, BagFrames))["model"])
 
 
 def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
         train_cfg=None) -> dict:
-    """The loop for `model` (its learned template) and the user's data set `data` -> summary
-    (also out/summary.json). With `model` None the shape is learned first with `train_cfg`."""
+    """The loop for `model` (its learned template) and the user's frames `data` (a data set's
+    folder, or `BagFrames`) -> summary (also out/summary.json). With `model` None the shape is
+    learned first with `train_cfg`."""
+    from . import checkpoint
     from . import data as data_mod
     from .distill import DistillConfig, distill
-    from .modelcard import export_from_dataset
+    from .modelcard import export_from_bag, export_from_dataset
+    from .preprocess import PreprocessConfig
     from .sim.dataset import DatasetSpec, generate, load_meta
     from .sim.scene import SceneConfig
 
@@ -155,7 +250,13 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
                          "(not both)")
     if model is not None:
         _model_file(model)  # a missing model is named before anything else
-    meta = load_meta(data)  # raises with what is wrong
+    bag = data if isinstance(data, BagFrames) else None
+    if bag is None:
+        meta = load_meta(data)  # raises with what is wrong
+    else:
+        from .paths import resolve_bag
+
+        resolve_bag(str(bag.path), "--bag")  # a missing bag is named before anything else
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     seconds: dict[str, float] = {}
@@ -168,12 +269,18 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
         seconds["shape"] = round(time.monotonic() - t0, 1)
         stages.update(1)
     file = _model_file(model).resolve()
-    _same_view(file, data)
+    if bag is None:
+        _same_view(file, data)
+        view = {}  # the piles cut as the data set's frames: its known bin and floor
+    else:  # the piles cut as the model cuts the bag's frames
+        view = {"cfg": PreprocessConfig.from_dict(checkpoint.load(file)["preprocess_config"]),
+                "as_given": True}
 
     t0 = time.monotonic()
     sim = out / "sim"
     if not (sim / "meta.json").is_file():
-        scene = SceneConfig.from_dict({**meta["scene"], "object": str(file)})
+        scene = (SceneConfig.from_dict({**meta["scene"], "object": str(file)}) if bag is None
+                 else bag.scene(file))
         spec = DatasetSpec(scene, {"train": cfg.scenes, "val": cfg.val_scenes, "test": 0},
                            seed=cfg.seed)
         generate(spec, sim, workers=cfg.workers, progress=progress)
@@ -183,17 +290,20 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
     t0 = time.monotonic()
     encoder = out / "encoder"
     if not (encoder / "summary.json").is_file():
-        train = data_mod.load_sim_split(sim, "train", progress=progress)
-        val = data_mod.load_sim_split(sim, "val", limit=100)
+        train = data_mod.load_sim_split(sim, "train", progress=progress, **view)
+        val = data_mod.load_sim_split(sim, "val", limit=100, **view)
         dcfg = DistillConfig(frames=cfg.scenes, iterations=cfg.iterations, lr=cfg.lr,
                              lr_schedule="cosine",
                              eval_every=max(1, min(500, cfg.iterations)), lambda_pose=0.0,
                              lambda_label=cfg.label_weight,
                              lambda_ownership=cfg.ownership_weight,
                              lambda_user=cfg.user_weight, seed=cfg.seed)
-        user = (data_mod.load_sim_split(data, "train", limit=cfg.user_frames,
-                                        progress=progress)["x"]  # its frames, not its labels
-                if cfg.user_weight > 0 else None)
+        user = None  # the user's frames, not their labels
+        if cfg.user_weight > 0 and bag is None:
+            user = data_mod.load_sim_split(data, "train", limit=cfg.user_frames,
+                                           progress=progress)["x"]
+        elif cfg.user_weight > 0:
+            user = bag.frames(view["cfg"])[0]["x"][:cfg.user_frames]
         distill(file, train["x"], val, encoder, dcfg, resume=True, progress=progress,
                 train_labels=train["labels"], user_x=user)
     seconds["encoder"] = round(time.monotonic() - t0, 1)
@@ -207,12 +317,15 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
         stages.update(1)
 
     t0 = time.monotonic()
-    card = export_from_dataset(finished, data, cfg.name, out / "model")
+    card = (export_from_dataset(finished, data, cfg.name, out / "model") if bag is None else
+            export_from_bag(finished, bag.path, cfg.name, out / "model", bag.topic,
+                            bag.labels_topic, bag.held_out))
     seconds["export"] = round(time.monotonic() - t0, 1)
     stages.update(1)
     stages.close()
 
-    summary = {"model": str(model), "data": str(data), "config": asdict(cfg),
+    summary = {"model": str(model), "data": str(data) if bag is None else bag.describe(),
+               "config": asdict(cfg),
                "seconds": seconds, "encoder": json.loads((encoder / "summary.json").read_text()),
                "card": str(out / "model" / "card.json"), "tau": card.get("tau")}
     tmp = out / "summary.json.tmp"

@@ -61,6 +61,19 @@ def tmp(tmp_path):
 
 
 @pytest.fixture(scope="session")
+def tiny_model(tmp_path_factory):
+    """A tiny model as `inseggan train` leaves it (learned renderer, 10 iterations) and the
+    simulated data set it was trained on: root/run/best.pt, root/data."""
+    root = tmp_path_factory.mktemp("seg")
+    run_cli("simulate", "--quiet", "--count", "40", "--split", "0.5,0.25,0.25", "--out",
+            root / "data", check=True)
+    run_cli("train", "--data", root / "data", "--out", root / "run", "--iterations", "10",
+            "--eval-every", "10", "--config", "cpu", "--nf", "8", "--batch-size", "4",
+            "--quiet", "--device", "cpu", check=True, timeout=600)
+    return root
+
+
+@pytest.fixture(scope="session")
 def python():
     return sys.executable
 

@@ -166,3 +166,21 @@ def test_card_shape_adds_the_learned_template_against_the_true_part(tmp):
     assert (folder / "model.pt").read_bytes() == weights
     p = run_cli("card-shape", folder, "--object", "teapot")
     assert p.returncode == 2 and "not a part of the simulator's library" in p.stderr, p.stderr
+
+
+def test_quality_settings_segment_the_default_models_bag_better_than_kmeans():
+    """config/quality.yaml (the node's --params-file for quality; that it sets the node's
+    parameters: test_segmenter.py) on the default model's sample bag, every frame at the bag's
+    own resolution as the node outputs them, against K-Means on the same frames."""
+    from inseggan_ros import settings
+    from inseggan_ros.nodes.segmenter import DEFAULT_MODEL
+
+    folder = REPO / "models" / DEFAULT_MODEL
+    card = json.loads((folder / "card.json").read_text())
+    seg = load_as_measured(folder)
+    params = settings.read_params_file(REPO / "config" / "quality.yaml")
+    seg.inference = settings.apply(seg.inference, {**params, "encoder_precision": None})
+    assert seg.inference.refine_steps == params["refine_steps"] > 0
+    full = full_resolution_scores(seg, BAGS / card["sample_bag"])
+    print(f"quality settings at full resolution: {full}")
+    assert full["inseggan"] > full["kmeans"], full

@@ -39,17 +39,6 @@ def test_tau_calibration_with_and_without_labels():
     assert scores[tau] == pytest.approx(1.0)
 
 
-@pytest.fixture(scope="module")
-def tiny_model(tmp_path_factory):
-    root = tmp_path_factory.mktemp("seg")
-    run_cli("simulate", "--quiet", "--count", "40", "--split", "0.5,0.25,0.25", "--out",
-            root / "data", check=True)
-    run_cli("train", "--data", root / "data", "--out", root / "run", "--iterations", "10",
-            "--eval-every", "10", "--config", "cpu", "--nf", "8", "--batch-size", "4",
-            "--quiet", "--device", "cpu", check=True, timeout=600)
-    return root
-
-
 def _two_blocks(edge_col: int, label_col: int):
     """A 32 x 32 frame: a low block (height -0.2) left of `edge_col` and a high one (0.6) right
     of it, on rows 8..23; labels split at `label_col` instead (a misplaced boundary)."""
@@ -144,19 +133,14 @@ def test_eval_cli_writes_table_json_and_png(tiny_model, tmp):
     p = run_cli("eval", "--model", tiny_model / "run" / "best.pt", "--data",
                 tiny_model / "data", "--frames", "4", "--out", tmp / "ev2", "--quiet",
                 "--methods", "kmeans", "--refine-steps", "3", "--refine-hypotheses", "2",
-                check=True, timeout=600)
+                "--smooth-iters", "5", check=True, timeout=600)
     r = json.loads((tmp / "ev2" / "results.json").read_text())
-    assert (r["refine_steps"], r["refine_hypotheses"]) == (3, 2)
-    assert "3 refinement steps" in p.stdout
+    assert (r["refine_steps"], r["refine_hypotheses"], r["smooth_iters"]) == (3, 2, 5)
+    assert "3 refinement steps" in p.stdout and "5 smoothing iterations" in p.stdout
     p = run_cli("eval", "--model", tiny_model / "run" / "best.pt", "--data",
                 tiny_model / "data", "--frames", "4", "--out", tmp / "ev3",
                 "--refine-hypotheses", "0")
     assert p.returncode != 0 and "hypotheses 0 invalid; valid: >= 1" in p.stderr
-    p = run_cli("eval", "--model", tiny_model / "run" / "best.pt", "--data",
-                tiny_model / "data", "--frames", "4", "--out", tmp / "ev4", "--quiet",
-                "--methods", "kmeans", "--smooth-iters", "5", check=True, timeout=600)
-    r = json.loads((tmp / "ev4" / "results.json").read_text())
-    assert r["smooth_iters"] == 5 and "5 smoothing iterations" in p.stdout
     p = run_cli("eval", "--model", tiny_model / "run" / "best.pt", "--data",
                 tiny_model / "data", "--frames", "4", "--out", tmp / "ev5", "--smooth-iters", "-1")
     assert p.returncode == 2 and "smooth_iters -1 invalid; valid: >= 0" in p.stderr

@@ -67,12 +67,12 @@ def test_tiny_training_run_improves_reconstruction(tmp, tiny_data):
 def test_killed_run_resumes_from_its_last_checkpoint(tmp, tiny_data):
     out = tmp / "run"
     args = [str(installed_executable("inseggan")), "train", "--data", str(tiny_data), "--out",
-            str(out), "--iterations", "1000", "--eval-every", "15", *TINY]
+            str(out), "--iterations", "1000", "--eval-every", "5", *TINY]
     proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         t0 = time.monotonic()
         while time.monotonic() - t0 < 300:
-            if (out / "last.pt").exists() and checkpoint.load(out / "last.pt")["iteration"] >= 30:
+            if (out / "last.pt").exists() and checkpoint.load(out / "last.pt")["iteration"] >= 10:
                 break
             time.sleep(0.5)
         proc.send_signal(signal.SIGKILL)  # no chance to clean up
@@ -81,12 +81,12 @@ def test_killed_run_resumes_from_its_last_checkpoint(tmp, tiny_data):
         if proc.poll() is None:
             proc.kill()
     saved = checkpoint.load(out / "last.pt")["iteration"]
-    assert saved >= 30
+    assert saved >= 10
     assert not [p for p in out.iterdir() if ".tmp" in p.name], "half-written files left"
-    p = run_cli("train", "--data", tiny_data, "--out", out, "--iterations", str(saved + 15),
-                "--eval-every", "15", "--resume", *TINY, timeout=600, check=True)
+    p = run_cli("train", "--data", tiny_data, "--out", out, "--iterations", str(saved + 5),
+                "--eval-every", "5", "--resume", *TINY, timeout=600, check=True)
     assert f"at iteration {saved}" in p.stdout
-    assert checkpoint.load(out / "last.pt")["iteration"] == saved + 15
+    assert checkpoint.load(out / "last.pt")["iteration"] == saved + 5
     # without --resume the run is protected
     p = run_cli("train", "--data", tiny_data, "--out", out, "--iterations", "5", *TINY)
     assert p.returncode == 2 and "--resume" in p.stderr

@@ -258,3 +258,27 @@ def estimate_camera(depths, info, near: float = 0.05, far: float = 3.0
     return cam, {"plane": plane, "bin_region": region, "frames": len(stack),
                  "bin_inner_size": (float(hi[0] - lo[0]), float(hi[1] - lo[1])),
                  "walls_found": found, "wall_height": wall, "floor_pixels": used}
+
+
+def camera_from_bag(path, depth_topic: str | None = None, frames: int = 30
+                    ) -> tuple[CameraConfig, dict, str]:
+    """`estimate_camera` on the first `frames` depth frames of a bag and the CameraInfo beside
+    them -> (camera, details, one line saying what was found). Raises ValueError when the bag
+    has no CameraInfo (no intrinsics to simulate with)."""
+    from ..bags import read_frames
+
+    got = list(read_frames(path, depth_topic=depth_topic, limit=frames))
+    info = next((f.camera_info for f in reversed(got) if f.camera_info is not None), None)
+    if info is None:
+        raise ValueError(f"{path}: no sensor_msgs/CameraInfo beside the depth topic, so no "
+                         "intrinsics to simulate with; valid: a bag with a "
+                         "sensor_msgs/CameraInfo beside the depth topic, or --camera PRESET")
+    cam, est = estimate_camera([f.metres() for f in got], info)
+    size = est["bin_inner_size"]
+    line = (f"camera from {path} ({est['frames']} frames): {cam.width}x{cam.height} "
+            f"fx {cam.fx:.1f} fy {cam.fy:.1f} cx {cam.cx:.1f} cy {cam.cy:.1f}, mount height "
+            f"{cam.mount_height:.4f} m, tilt {cam.tilt:.2f} deg, roll {cam.roll:.2f} deg, bin "
+            f"offset ({cam.bin_offset[0]:.3f}, {cam.bin_offset[1]:.3f}), bin inner size "
+            f"{size[0]:.3f} x {size[1]:.3f} m"
+            + ("" if all(est["walls_found"]) else " (walls not all in view: from the floor seen)"))
+    return cam, est, line
