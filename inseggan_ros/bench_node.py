@@ -62,7 +62,7 @@ def in_process_reference(frames, model_path: str, params: dict, repeats: int = 3
     torch.set_num_threads(1)
     seg = Segmenter.from_checkpoint(resolve_model(model_path), device="cpu")
     cfg = settings.apply(seg.inference, params)
-    prep = node_defaults(seg.prep_cfg, depth_to_metres(frames[0], "16UC1"))
+    prep = node_defaults(seg.prep_cfg, [depth_to_metres(f, "16UC1") for f in frames[:5]])
     infer_ms, conv_ms = [], []
     for _ in range(repeats):
         for raw in frames:

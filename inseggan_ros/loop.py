@@ -87,6 +87,7 @@ class LoopConfig:
 class BagFrames:
     """A user's recording as the loop's frames: a rosbag2 bag (MCAP or sqlite3) of depth images
     with a sensor_msgs/CameraInfo beside them, no labels needed."""
+
     path: Path
     instances: int  # parts in the bin: the simulated piles hold this many
     topic: str | None = None  # the depth topic (None: the bag's only depth topic)

@@ -366,7 +366,7 @@ def sample_bag_scores(seg, bag_name: str) -> dict:
 def full_resolution_scores(seg, bag_path) -> dict:
     """Scores of InSeGAN and K-Means at the bag's own resolution, against its ground truth.
 
-    InSeGAN as the segmenter node runs with its defaults (bin region found in the first frame,
+    InSeGAN as the segmenter node runs with its defaults (bin region found in the first frames,
     floor depth estimated per frame), labels mapped back to every input pixel and carried onto
     objects just outside the region (`preprocess.extend_labels`); K-Means on (x, y, depth) of
     the ground-truth foreground of the same frames (the true foreground, pixels outside the bin
@@ -377,7 +377,7 @@ def full_resolution_scores(seg, bag_path) -> dict:
     from .preprocess import node_defaults
 
     frames = bags.read_all(bag_path)
-    prep = node_defaults(seg.prep_cfg, frames[0].metres())
+    prep = node_defaults(seg.prep_cfg, [f.metres() for f in frames[:5]])
     n = seg.model_cfg.n_instances
     ours, km, gt = [], [], []
     for f in frames:

@@ -287,3 +287,27 @@ def test_prepare_batch_stacks_model_input(frames):
     assert x.shape == (2, 1, 32, 32) and x.dtype == np.float32
     assert np.array_equal(x[1, 0], preps[1].x)
     assert prepare_batch([], PreprocessConfig())[0].shape == (0, 1, 64, 64)
+
+
+def test_the_streams_bin_region_is_the_median_of_its_first_frames():
+    """A part leaning on a wall misleads the bin finder in one simulated cylinder scene of 40
+    (seed 0, test scene 4: a region 8 pixels too tall, at the millimetres bin_replay sends);
+    the segmenter node's region, the median of the first BIN_FRAMES frames' regions, is the
+    bin's even when that scene comes first."""
+    from inseggan_ros.preprocess import BIN_FRAMES, find_bin_roi, median_region, node_defaults
+    from inseggan_ros.sim.dataset import scene_seed
+    from inseggan_ros.sim.scene import BinSimulator, SceneConfig
+
+    with BinSimulator(SceneConfig()) as sim:
+        depths = [np.round(sim.render(scene_seed(0, "test", k)).depth * 1000) / 1000
+                  for k in range(4, 4 + BIN_FRAMES)]
+    assert median_region([(58, 49, 167, 166), (58, 57, 167, 166), (59, 57, 166, 165),
+                          (58, 57, 167, 166), (57, 58, 168, 167)]) == (58, 57, 167, 166)
+    regions = [find_bin_roi(d) for d in depths]
+    good = regions[1]
+    assert regions[1:].count(good) >= BIN_FRAMES - 2, regions
+    if regions[0] == good:  # the physics engine's rounding placed the parts otherwise here
+        pytest.skip(f"scene 4 does not mislead the bin finder on this machine: {regions}")
+    assert regions[0][1] < good[1] - 4, regions
+    assert node_defaults(PreprocessConfig(), depths).roi == good
+    assert node_defaults(PreprocessConfig(), depths[0]).roi == regions[0]  # one frame: its own

@@ -135,7 +135,7 @@ class SegmenterNode(Node):
         self._logged = {}  # (reason, message start) -> when last logged
         self._shape = None  # resolution of the last good frame
         self._new_shape = (None, 0)  # (shape, consecutive frames) of a changed resolution
-        self._roi_cache = {}  # frame shape -> bin region found in it
+        self._roi_cache = {}  # frame shape -> the bin regions found in its first frames
         self.create_timer(self.get_parameter("diagnostics_period").value, self._publish_diagnostics)
         self.get_logger().info(
             f"model {self.model_path} ({n} x instances, tau {self.model.tau:.3f}, device "
@@ -382,18 +382,24 @@ class SegmenterNode(Node):
                                        f"{self._shape[1]}x{self._shape[0]}")
 
     def _prep_for(self, depth: np.ndarray):
-        """The preprocessing config for this frame: the bin region found once per resolution."""
+        """The preprocessing config for this frame: the bin region of the stream's resolution,
+        the per-side median of the regions found in its first `BIN_FRAMES` frames (until then,
+        of those so far; `preprocess.node_defaults`). One frame can mislead the finder, and a
+        region taken from it alone would cut every later frame wrongly."""
+        from ..preprocess import BIN_FRAMES, find_bin_roi, median_region
+
         if self.prep.roi is not None or self.prep.polygon is not None:
             return self.prep
-        roi = self._roi_cache.get(depth.shape)
-        if roi is None:
-            from ..preprocess import find_bin_roi
+        found = self._roi_cache.setdefault(depth.shape, [])
+        if len(found) < BIN_FRAMES:
 
-            roi = find_bin_roi(depth)
-            self._roi_cache[depth.shape] = roi
-            self.get_logger().info(f"bin region found: {list(roi)} in the {depth.shape[1]}x"
-                                   f"{depth.shape[0]} frame (set `roi` to fix it)")
-        return replace(self.prep, roi=roi)
+            found.append(find_bin_roi(depth))
+            if len(found) == BIN_FRAMES:
+                self.get_logger().info(
+                    f"bin region: {list(median_region(found))} in the {depth.shape[1]}x"
+                    f"{depth.shape[0]} frames (the median of the first {BIN_FRAMES} frames' "
+                    "regions; set `roi` to fix it)")
+        return replace(self.prep, roi=median_region(found))
 
     def _on_depth(self, msg: Image) -> None:
         t0 = time.perf_counter()
