@@ -183,7 +183,16 @@ def _load_training_data(args):
 
         train, val = split(slice(None, -k)), split(slice(-k, None))
         info = {"source": "bag", "path": str(args.bag), "topic": args.topic,
-                "train_frames": len(train["x"]), "val_frames": len(val["x"])}
+                "train_frames": len(train["x"]), "val_frames": len(val["x"]),
+                "view": data_mod.bag_view(train)}  # with a camera: the template in metres
+        try:
+            from dataclasses import asdict
+
+            from .sim.user_camera import camera_from_bag
+
+            info["camera"] = asdict(camera_from_bag(args.bag, args.topic)[0])
+        except ValueError as e:  # no CameraInfo, no floor found: the template's size unknown
+            print(f"note: no camera for the template's size in metres ({e})", file=sys.stderr)
     return train, val, prep, info
 
 

@@ -158,6 +158,17 @@ def load_bag(path, cfg: PreprocessConfig | None = None, depth_topic: str | None 
     return out
 
 
+def bag_view(frames: dict) -> dict:
+    """Where a bag's frames were cut, for a model trained on them (its checkpoint's data record):
+    the median bin region used (margin already shaved) and floor depth at its centre. The
+    template's size in metres needs them (`sim.learned.template_scale`) when the preprocessing
+    finds the bin in every frame and so stores neither."""
+    if not len(frames["x"]):
+        raise ValueError("no frames to take the bin region from")
+    return {"roi": [int(v) for v in np.median(frames["roi"], axis=0).round()],
+            "floor_depth": float(np.median(frames["floor_depth"]))}
+
+
 # ------------------------------------------------------------------------------ torch
 class DepthTensorDataset(torch.utils.data.Dataset):
     """A loaded split as torch tensors: item i is x (1, size, size) float32, or (x, labels)

@@ -191,11 +191,16 @@ def learn_shape(data, out, train_cfg, progress: bool = True, val_frames: int = 1
     if isinstance(data, BagFrames):  # the bin found in every frame, as `inseggan train --bag`
         from .preprocess import PreprocessConfig
 
+        from .data import bag_view
+        from .sim.user_camera import camera_from_bag
+
         n, prep = data.instances, PreprocessConfig()
         frames, val = data.frames(prep)
         val = {k: (v[:val_frames] if isinstance(v, np.ndarray) else v) for k, v in val.items()}
         info = {"source": "bag", "path": str(data.path), "topic": data.topic,
-                "train_frames": len(frames["x"]), "val_frames": len(val["x"])}
+                "train_frames": len(frames["x"]), "val_frames": len(val["x"]),
+                "camera": asdict(camera_from_bag(data.path, data.topic)[0]),
+                "view": bag_view(frames)}  # with the camera: the template's size in metres
     else:
         n = int(load_meta(data)["scene"]["instances"])
         frames, val, prep, info = load_sim_training(data, val_frames=val_frames,

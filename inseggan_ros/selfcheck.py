@@ -178,9 +178,10 @@ def sheet_png(path, x: np.ndarray, out: dict, frames=None, labels_gt: np.ndarray
 def load_bag_frames(path, prep_cfg, depth_topic: str | None = None,
                     labels_topic: str | None = None, count: int | None = None) -> dict:
     """Depth frames of a bag, preprocessed as `data.load_bag` does -> {x, fg, labels (or None),
-    stamp_ns, index (the frames' positions in the bag)}. Labels only from `labels_topic`, when
-    named (a bag's label topic is otherwise ignored: these are label-free measures). `count`:
-    that many frames spread evenly over the bag (default: all)."""
+    stamp_ns, index (the frames' positions in the bag), roi and floor_depth (where each was
+    cut)}. Labels only from `labels_topic`, when named (a bag's label topic is otherwise
+    ignored: these are label-free measures). `count`: that many frames spread evenly over the
+    bag (default: all)."""
     from . import bags
     from .preprocess import prepare, resize_labels
 
@@ -195,7 +196,8 @@ def load_bag_frames(path, prep_cfg, depth_topic: str | None = None,
         total = topics.get(depth_topic or bags.DEPTH_TOPIC, ("", 0))[1]
         if total:
             wanted = set(np.linspace(0, total - 1, min(count, total)).round().astype(int).tolist())
-    rows = {"x": [], "fg": [], "labels": [], "stamp_ns": [], "index": []}
+    rows = {"x": [], "fg": [], "labels": [], "stamp_ns": [], "index": [], "roi": [],
+            "floor_depth": []}
     for i, f in enumerate(bags.read_frames(path, depth_topic=depth_topic,
                                            labels_topic=labels_topic)):
         if wanted is not None and i not in wanted:
@@ -212,6 +214,8 @@ def load_bag_frames(path, prep_cfg, depth_topic: str | None = None,
         rows["labels"].append(resize_labels(f.labels, p) if labels_topic is not None else None)
         rows["stamp_ns"].append(f.stamp_ns)
         rows["index"].append(i)
+        rows["roi"].append(p.roi)
+        rows["floor_depth"].append(p.floor_depth)
         if wanted is None and count is not None and len(rows["x"]) >= count:
             break
     if not rows["x"]:
@@ -219,7 +223,9 @@ def load_bag_frames(path, prep_cfg, depth_topic: str | None = None,
     return {"x": np.stack(rows["x"]).astype(np.float32), "fg": np.stack(rows["fg"]),
             "labels": np.stack(rows["labels"]) if labels_topic is not None else None,
             "stamp_ns": np.array(rows["stamp_ns"], np.int64),
-            "index": np.array(rows["index"], np.int64)}
+            "index": np.array(rows["index"], np.int64),
+            "roi": np.array(rows["roi"], np.int32).reshape(-1, 4),
+            "floor_depth": np.array(rows["floor_depth"], np.float32)}
 
 
 def split_held_out(frames: dict, fraction: float = 0.2, limit: int | None = None

@@ -5,12 +5,14 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 from conftest import run_cli
 
 from inseggan_ros import checkpoint, losses
 from inseggan_ros.data import load_bag, load_sim_split
 from inseggan_ros.preprocess import PreprocessConfig
+from inseggan_ros.sim.learned import model_camera, template_scale
 from inseggan_ros.metrics import mean_miou, miou_batch
 from inseggan_ros.segment import labels_from_renders
 
@@ -112,6 +114,14 @@ def test_one_command_from_a_bag_learns_the_shape_then_ships_a_model(tmp):
     # the bag's last 20 % (6 frames) are the card's only: the shape learned from the other 24
     learned = checkpoint.load(out / "shape" / "best.pt")
     assert learned["data"]["source"] == "bag" and learned["data"]["train_frames"] == 24
+    # the template in metres: the bin is found in every frame, so its scale is that of the
+    # bag's median region and floor, seen by the bag's camera (not a guess from max_height)
+    view, cam = learned["data"]["view"], model_camera(out / "shape" / "best.pt", learned)
+    assert cam is not None and cam.fx == pytest.approx(426.0) and abs(cam.tilt - 3) < 0.5
+    x0, _, x1, _ = view["roi"]
+    want = (x1 - x0) * view["floor_depth"] / cam.fx / 2  # at the floor; the template's middle
+    scale = template_scale(learned, checkpoint.build_models(learned)[1], cam)  # is nearer
+    assert 0.8 * want < scale[0] <= want, (scale, want)
     card = json.loads((out / "model" / "card.json").read_text())
     assert card["label_free"] and card["source"]["kind"] == "bag"
     assert card["labelled"]["frames"] == 6  # from the labels topic, for the card only

@@ -97,6 +97,9 @@ def template_scale(state: dict, G, camera=None) -> np.ndarray:
     from ..shape import metres_per_unit
 
     prep = dict(state["preprocess_config"])
+    view = (state.get("data") or {}).get("view")  # a bag's: the bin found in every frame
+    if view and prep.get("roi") is None and prep.get("floor_depth") is None:
+        prep.update(roi=view["roi"], floor_depth=view["floor_depth"], margin=0)
     gain = float(state["model_config"].get("height_gain", 1.8))
     z = metres_per_unit(prep, None, gain)[2]
     if camera is not None and prep.get("floor_depth") is not None:

@@ -21,6 +21,13 @@ from .noise import NoiseConfig, apply_noise
 from .objects import ObjectSpec, get_object
 
 
+DROPS = 5  # tries to drop each part into the bin before the scene is given up
+
+
+class PileError(ValueError):
+    """A scene's parts do not stay in the bin (the part is too large for that many)."""
+
+
 @dataclass(frozen=True)
 class BinConfig:
     inner_size: tuple[float, float] = (0.09, 0.09)  # metres (x, y)
@@ -192,8 +199,8 @@ class BinSimulator:
         spread = np.asarray(cfg.bin.inner_size) * cfg.drop_spread / 2
         bodies: list[int] = []
         top = 0.0
-        for _ in range(cfg.instances):
-            for _attempt in range(5):
+        for k in range(cfg.instances):
+            for _attempt in range(DROPS):
                 q = rng.standard_normal(4)
                 q /= np.linalg.norm(q)
                 pos = [*rng.uniform(-spread, spread), top + self.spec.radius + 0.01]
@@ -207,7 +214,13 @@ class BinSimulator:
                     break
                 p.removeBody(body, physicsClientId=c)  # bounced out: drop it again
             else:
-                raise RuntimeError(f"seed {seed}: could not drop object into the bin")
+                size = " x ".join(f"{1000 * v:.0f}" for v in self.spec.extent)
+                inner = " x ".join(f"{1000 * v:.0f}" for v in cfg.bin.inner_size)
+                raise PileError(
+                    f"seed {seed}: part {k + 1} of {cfg.instances} ({self.spec.name}, {size} mm) "
+                    f"fell out of the {inner} mm bin in {DROPS} drops; valid: a part that fits "
+                    f"that many times in the bin (a learned shape this large is not learned yet: "
+                    "train it longer), or fewer instances, or a larger bin")
             bodies.append(body)
             top = max(p.getAABB(b, physicsClientId=c)[1][2] for b in bodies)
 
