@@ -48,6 +48,12 @@ def set_param(node: str, name: str, value: str) -> str:
     return _param_client("set", node, name, value)
 
 
+def set_params(node: str, *pairs: tuple[str, str]) -> list[str]:
+    """`set_param` for each (name, value) in turn, one request each, from one process (a
+    process per set costs a second or two of start-up and discovery) -> a result per pair."""
+    return _param_client("set", node, *(v for pair in pairs for v in pair)).splitlines()
+
+
 def get_params(node: str, *names: str) -> dict:
     """A running node's parameters, read from another process."""
     import json

@@ -1,9 +1,10 @@
 """A separate rclpy process that reads or sets parameters of a node over its services.
 
     python param_client.py get NODE NAME [NAME ...]   prints {name: value} as JSON
-    python param_client.py set NODE NAME VALUE        VALUE a Python literal; prints 'ok' or
-                                                      'rejected: <reason>'
-Exit 0 when the call was answered. Used through conftest.get_params / conftest.set_param.
+    python param_client.py set NODE NAME VALUE [NAME VALUE ...]
+                                  each VALUE a Python literal, each set a request of its own,
+                                  in order; prints a line per set: 'ok' or 'rejected: <reason>'
+Exit 0 when the calls were answered. Used through conftest.get_params / set_param / set_params.
 """
 import ast
 import json
@@ -34,11 +35,11 @@ def main():
         values = [parameter_value_to_python(v) for v in result.values]
         print(json.dumps(dict(zip(args, values))), flush=True)
     else:
-        name, value = args[0], ast.literal_eval(args[1])
-        request = SetParameters.Request(
-            parameters=[Parameter(name, value=value).to_parameter_msg()])
-        result = call(node, SetParameters, f"{node_name}/set_parameters", request).results[0]
-        print("ok" if result.successful else f"rejected: {result.reason}", flush=True)
+        for name, text in zip(args[::2], args[1::2]):
+            request = SetParameters.Request(
+                parameters=[Parameter(name, value=ast.literal_eval(text)).to_parameter_msg()])
+            result = call(node, SetParameters, f"{node_name}/set_parameters", request).results[0]
+            print("ok" if result.successful else f"rejected: {result.reason}", flush=True)
     rclpy.shutdown()
 
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import BAGS, installed_executable, set_param
+from conftest import BAGS, installed_executable, set_params
 
 from inseggan_ros import bags
 from inseggan_ros.image_codec import metres_to_depth
@@ -153,11 +153,12 @@ def test_bad_parameters_fail_at_start_with_one_clear_line(params, message):
 def test_parameter_changes_are_validated_at_run_time():
     replay = start_replay("/params", "rate:=5.0")
     try:
-        node = "/params/bin_replay"
-        assert set_param(node, "rate", "20.0") == "ok"
-        assert set_param(node, "rate", "0.0").startswith("rejected: parameter rate=0.0 invalid")
-        assert set_param(node, "rate", "5000.0").startswith("rejected")  # outside 0..1000
-        assert set_param(node, "object", "'bolt'").startswith("rejected")  # read-only
+        got = set_params("/params/bin_replay", ("rate", "20.0"), ("rate", "0.0"),
+                         ("rate", "5000.0"), ("object", "'bolt'"))
+        assert len(got) == 4 and got[0] == "ok", got
+        assert got[1].startswith("rejected: parameter rate=0.0 invalid"), got
+        assert got[2].startswith("rejected")  # outside 0..1000
+        assert got[3].startswith("rejected")  # read-only
         assert replay.poll() is None, "the node keeps running"
     finally:
         assert stop(replay) == 0

@@ -193,3 +193,27 @@ def test_label_free_export_of_a_data_set(tmp):
     labelled = json.loads((tmp / "l" / "card.json").read_text())
     assert labelled["tau"] == pytest.approx(checkpoint.load(tmp / "l" / "model.pt")["tau"])
     assert labelled["test"]["frames"] == 4 and "kmeans" in labelled["test"]["methods"]
+
+
+def test_a_model_trained_on_a_bag_records_where_its_template_is_in_metres(tmp, small_bags):
+    """`train --bag` finds the bin in every frame, so the preprocessing it stores names no
+    region and no floor: the checkpoint records the bag's camera (from its CameraInfo and
+    floor) and the frames' median region and floor instead, and the template's scale in metres
+    comes from them, as for a model trained on a simulated data set of the same camera."""
+    from inseggan_ros.sim.camera import get_camera
+    from inseggan_ros.sim.learned import model_camera, template_scale
+
+    _, unlabelled = small_bags
+    run_cli("train", "--bag", unlabelled, "--out", tmp / "run", "--iterations", "1",
+            "--eval-every", "1", "--instances", "5", "--quiet", check=True, timeout=600)
+    state = checkpoint.load(tmp / "run" / "last.pt")
+    assert state["preprocess_config"]["roi"] is None
+    view, cam = state["data"]["view"], model_camera(tmp / "run" / "last.pt", state)
+    true = get_camera("default")  # what simulate-bag rendered with
+    assert cam.fx == pytest.approx(true.fx) and cam.mount_height == pytest.approx(
+        true.mount_height, abs=0.002)
+    assert view["floor_depth"] == pytest.approx(true.mount_height, abs=0.002)
+    x0, y0, x1, y1 = view["roi"]
+    assert 80 < x1 - x0 < 130 and 80 < y1 - y0 < 130  # the 224 x 224 view's bin: about 108 px
+    scale = template_scale(state, checkpoint.build_models(state)[1], cam)
+    assert scale[0] == pytest.approx((x1 - x0) * view["floor_depth"] / cam.fx / 2, rel=0.2)
