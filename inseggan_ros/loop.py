@@ -189,14 +189,14 @@ def learn_shape(data, out, train_cfg, progress: bool = True, val_frames: int = 1
     if (out / "summary.json").is_file() and (out / "best.pt").is_file():
         return out / "best.pt"
     if isinstance(data, BagFrames):  # the bin found in every frame, as `inseggan train --bag`
-        from .preprocess import PreprocessConfig
-
         from .data import bag_view
+        from .preprocess import PreprocessConfig
         from .sim.user_camera import camera_from_bag
 
         n, prep = data.instances, PreprocessConfig()
         frames, val = data.frames(prep)
-        val = {k: (v[:val_frames] if isinstance(v, np.ndarray) else v) for k, v in val.items()}
+        val = {k: (v[:val_frames] if isinstance(v, np.ndarray) else v) for k, v in val.items()
+               if k != "labels"}  # the labels topic is the card's only: validation without
         info = {"source": "bag", "path": str(data.path), "topic": data.topic,
                 "train_frames": len(frames["x"]), "val_frames": len(val["x"]),
                 "camera": asdict(camera_from_bag(data.path, data.topic)[0]),
@@ -207,7 +207,6 @@ def learn_shape(data, out, train_cfg, progress: bool = True, val_frames: int = 1
                                                     progress=progress)
     train_cfg = replace(train_cfg, model=replace(train_cfg.model, n_instances=n))
     frames.pop("labels", None)  # the shape is learned without labels
-    val.pop("labels", None)
     train(train_cfg, frames, val, out, prep.to_dict(), info, resume=(out / "last.pt").is_file(),
           progress=progress)
     return out / "best.pt"

@@ -111,6 +111,10 @@ def test_one_command_from_a_bag_learns_the_shape_then_ships_a_model(tmp):
     assert summary["data"]["kind"] == "bag" and summary["data"]["instances"] == 4
     shape = json.loads((out / "shape" / "summary.json").read_text())
     assert shape["iterations"] == 10
+    # validated without the labels topic (the card's only): by reconstruction, no mIoU
+    log = [json.loads(line) for line in (out / "shape" / "log.jsonl").read_text().splitlines()]
+    val = [r for r in log if r["kind"] == "val"]
+    assert val and all("miou" not in r and "recon_l1" in r for r in val), val
     # the bag's last 20 % (6 frames) are the card's only: the shape learned from the other 24
     learned = checkpoint.load(out / "shape" / "best.pt")
     assert learned["data"]["source"] == "bag" and learned["data"]["train_frames"] == 24
