@@ -56,13 +56,14 @@ def in_process_reference(frames, model_path: str, params: dict, repeats: int = 3
     from .image_codec import depth_to_metres
     from .nodes import conversions
     from .nodes.segmenter import resolve_model
-    from .preprocess import node_defaults
+    from .preprocess import BIN_FRAMES, node_defaults
     from .segment import Segmenter
 
     torch.set_num_threads(1)
     seg = Segmenter.from_checkpoint(resolve_model(model_path), device="cpu")
     cfg = settings.apply(seg.inference, params)
-    prep = node_defaults(seg.prep_cfg, [depth_to_metres(f, "16UC1") for f in frames[:5]])
+    prep = node_defaults(seg.prep_cfg,
+                         [depth_to_metres(f, "16UC1") for f in frames[:BIN_FRAMES]])
     infer_ms, conv_ms = [], []
     for _ in range(repeats):
         for raw in frames:

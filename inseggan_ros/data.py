@@ -94,11 +94,15 @@ def load_sim_split(root, split: str, cfg: PreprocessConfig | None = None,
     if limit is not None and limit < 0:
         raise ValueError(f"limit must be >= 0 or None, got {limit}")
     known = sim_preprocess_config(meta)
-    if as_given and cfg is None:
-        raise ValueError("as_given needs a preprocessing config")
-    cfg = cfg if as_given else known if cfg is None else replace(
-        cfg, roi=cfg.roi if cfg.roi is not None else known.roi,
-        floor_depth=cfg.floor_depth if cfg.floor_depth is not None else known.floor_depth)
+    if as_given:
+        if cfg is None:
+            raise ValueError("as_given needs a preprocessing config")
+    elif cfg is None:
+        cfg = known
+    else:
+        cfg = replace(
+            cfg, roi=cfg.roi if cfg.roi is not None else known.roi,
+            floor_depth=cfg.floor_depth if cfg.floor_depth is not None else known.floor_depth)
     n = int(meta["counts"][split]) if limit is None else min(limit, int(meta["counts"][split]))
     out = _empty(n, cfg.size)
     if n:

@@ -113,17 +113,12 @@ class BagFrames:
         from . import selfcheck
 
         frames = selfcheck.load_bag_frames(self.path, prep, self.topic, self.labels_topic)
-        n = len(frames["x"])
-        k = int(round(n * self.held_out))
-        if k < 1 or n - k < 2:
-            raise ValueError(f"{self.path}: {n} frames are too few; valid: enough that the last "
-                             f"{100 * self.held_out:.0f} % (held out) is a frame or more and "
-                             "two or more are left to learn from")
-
-        def part(sl):
-            return {key: (v[sl] if isinstance(v, np.ndarray) else v) for key, v in frames.items()}
-
-        return part(slice(None, n - k)), part(slice(n - k, None))
+        before, held = selfcheck.split_held_out(frames, self.held_out)
+        if len(before["x"]) < 2:
+            raise ValueError(f"{self.path}: {len(frames['x'])} frames are too few; valid: "
+                             f"enough that the last {100 * self.held_out:.0f} % (held out) is a "
+                             "frame or more and two or more are left to learn from")
+        return before, held
 
     def scene(self, part) -> "SceneConfig":
         """The simulator's scene: `part` piled `instances` times in the bin the bag shows, seen
@@ -304,11 +299,10 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
                              lambda_ownership=cfg.ownership_weight,
                              lambda_user=cfg.user_weight, seed=cfg.seed)
         user = None  # the user's frames, not their labels
-        if cfg.user_weight > 0 and bag is None:
-            user = data_mod.load_sim_split(data, "train", limit=cfg.user_frames,
-                                           progress=progress)["x"]
-        elif cfg.user_weight > 0:
-            user = bag.frames(view["cfg"])[0]["x"][:cfg.user_frames]
+        if cfg.user_weight > 0:
+            user = (data_mod.load_sim_split(data, "train", limit=cfg.user_frames,
+                                            progress=progress)["x"] if bag is None
+                    else bag.frames(view["cfg"])[0]["x"][:cfg.user_frames])
         distill(file, train["x"], val, encoder, dcfg, resume=True, progress=progress,
                 train_labels=train["labels"], user_x=user)
     seconds["encoder"] = round(time.monotonic() - t0, 1)

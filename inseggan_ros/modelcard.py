@@ -374,10 +374,10 @@ def full_resolution_scores(seg, bag_path) -> dict:
     from . import bags
     from .baselines import kmeans
     from .metrics import mean_miou, miou_batch
-    from .preprocess import node_defaults
+    from .preprocess import BIN_FRAMES, node_defaults
 
     frames = bags.read_all(bag_path)
-    prep = node_defaults(seg.prep_cfg, [f.metres() for f in frames[:5]])
+    prep = node_defaults(seg.prep_cfg, [f.metres() for f in frames[:BIN_FRAMES]])
     n = seg.model_cfg.n_instances
     ours, km, gt = [], [], []
     for f in frames:

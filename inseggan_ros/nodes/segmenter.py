@@ -386,12 +386,13 @@ class SegmenterNode(Node):
         the per-side median of the regions found in its first `BIN_FRAMES` frames (until then,
         of those so far; `preprocess.node_defaults`). One frame can mislead the finder, and a
         region taken from it alone would cut every later frame wrongly."""
-        from ..preprocess import BIN_FRAMES, find_bin_roi, median_region
+        from ..preprocess import BIN_FRAMES, median_region
 
         if self.prep.roi is not None or self.prep.polygon is not None:
             return self.prep
         found = self._roi_cache.setdefault(depth.shape, [])
         if len(found) < BIN_FRAMES:
+            from ..preprocess import find_bin_roi
 
             found.append(find_bin_roi(depth))
             if len(found) == BIN_FRAMES:
