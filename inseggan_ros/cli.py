@@ -364,6 +364,16 @@ def cmd_eval(args) -> int:
     return 0
 
 
+def cmd_card_run(args) -> int:
+    from .modelcard import add_training_run
+
+    r = add_training_run(args.model, args.checkpoint, args.eval, args.label, args.hardware)
+    print(f"{args.model}: run {r['label']!r} ({r['iterations']} iterations, "
+          f"{r['wall_minutes']} min on {r['hardware']}): test mIoU {r['miou_all']:.3f}; "
+          "card and README written")
+    return 0
+
+
 def cmd_card_shape(args) -> int:
     from .modelcard import add_shape
 
@@ -561,6 +571,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--voxels", type=int, default=30,
                    help="voxels along the part's largest extent (30)")
     p.set_defaults(func=cmd_card_shape)
+
+    p = sub.add_parser("card-run", help="record another training run of the part (another "
+                                        "config, a GPU) on a model card, with its test scores")
+    p.add_argument("model", type=Path, help="a model folder (models/<name>)")
+    p.add_argument("--checkpoint", type=Path, required=True, help="the run's checkpoint")
+    p.add_argument("--eval", type=Path, required=True,
+                   help="its `inseggan eval` results.json on the card's test split")
+    p.add_argument("--label", required=True, help="the run's name on the card")
+    p.add_argument("--hardware", required=True, help="what it trained on, e.g. 'NVIDIA H200'")
+    p.set_defaults(func=cmd_card_run)
 
     p = sub.add_parser("export", help="ship a trained model: models/<name>/ with a model card")
     p.add_argument("--checkpoint", type=Path, required=True,

@@ -501,6 +501,82 @@ def add_shape(model_dir, object_name: str | None = None, voxels: int = 30) -> di
     return card["shape"]
 
 
+def add_training_run(model_dir, checkpoint_path, eval_results, label: str,
+                     hardware: str) -> dict:
+    """Record on a model card another training run of the same part (another config, more
+    compute, a GPU), scored by `inseggan eval` on the card's own test frames, so that the card
+    shows what the shipped recipe is measured against. The run is described from its checkpoint
+    (config, iterations, wall time) and `hardware`; the scores from `eval_results` (results.json),
+    which must be of the card's data set and test split, all of its test frames. A run of the
+    same label replaces the earlier one; the folder is replaced atomically. -> the record."""
+    from . import checkpoint as ckpt
+
+    model_dir = Path(model_dir)
+    card = json.loads((model_dir / "card.json").read_text())
+    res = json.loads(Path(eval_results).read_text())
+    frames = card["test"]["frames"]
+    scored = str(res.get("data", ""))
+    if scored != f"{card['data']['root']} (test)":
+        raise ValueError(f"{eval_results}: scored on {scored!r}; valid: the card's test split "
+                         f"'{card['data']['root']} (test)'")
+    if res.get("frames") != frames:
+        raise ValueError(f"{eval_results}: {res.get('frames')} frames scored, the card's test "
+                         f"split has {frames}: score the run on all of them")
+    state = ckpt.load(checkpoint_path)
+    t = state["train_config"]
+    m = res["methods"]["inseggan"]
+    record = {"label": label, "checkpoint": str(checkpoint_path), "hardware": hardware,
+              "nf": t["model"]["nf"], "renderer": t["model"]["renderer"],
+              "composite": t["model"]["composite"], "batch_size": t["batch_size"],
+              "iterations": int(state["iteration"]),
+              "wall_minutes": round(float(state["elapsed_seconds"]) / 60, 1),
+              "distilled": bool(state.get("distill")),
+              "settings": {k: res[k] for k in ("refine_steps", "refine_hypotheses",
+                                               "smooth_iters")},
+              "miou_all": m["miou_all"], "miou_hard": m.get("miou_hard"),
+              "miou_hard_felzenszwalb": m.get("miou_hard_felzenszwalb"),
+              "ms_per_frame": m["ms_per_frame"]}
+
+    def write(tmp: Path) -> None:
+        for f in model_dir.iterdir():
+            if f.is_file() and f.name not in ("card.json", "README.md"):
+                shutil.copy2(f, tmp / f.name)
+        runs = [r for r in card.get("training_runs", []) if r["label"] != label]
+        card["training_runs"] = runs + [record]
+        (tmp / "card.json").write_text(json.dumps(card, indent=2))
+        (tmp / "README.md").write_text(card_markdown(card))
+
+    write_folder(model_dir, write)
+    return record
+
+
+def _runs_lines(card: dict) -> list[str]:
+    runs = card.get("training_runs")
+    if not runs:
+        return []
+
+    def f(v):
+        return "-" if v is None else f"{v:.3f}"
+
+    lines = ["## Other training runs", "",
+             "The GAN alone (its checkpoint's encoder, one start, no refinement or smoothing, "
+             "unless the settings column says otherwise), on the same test frames "
+             "(`inseggan card-run`); iterations and minutes up to the checkpoint kept (the best "
+             "on the validation frames), milliseconds a frame on the CPU that scored it:", "",
+             "| run | hardware | template, nf, batch | iterations | minutes | settings "
+             "(refine, starts, smooth) | all | hard: K-Means | hard: Felzenszwalb | ms / frame |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in runs:
+        s = r["settings"]
+        lines.append(
+            f"| {r['label']} | {r['hardware']} | {r['renderer']} ({r['composite']}), "
+            f"{r['nf']}, {r['batch_size']} | {r['iterations']} | {r['wall_minutes']} | "
+            f"{s['refine_steps']}, {s['refine_hypotheses']}, {s['smooth_iters']} | "
+            f"{f(r['miou_all'])} | {f(r['miou_hard'])} | {f(r['miou_hard_felzenszwalb'])} | "
+            f"{r['ms_per_frame']:.1f} |")
+    return lines + [""]
+
+
 def _distill_record(state: dict) -> dict | None:
     """What `inseggan distill` did to the encoder of this checkpoint, if anything."""
     d = state.get("distill")
@@ -560,5 +636,6 @@ def card_markdown(card: dict) -> str:
         *_bag_line(card),
         "![qualitative](qualitative.png)", "",
         *_shape_lines(card),
+        *_runs_lines(card),
     ]
     return "\n".join(lines)

@@ -168,6 +168,45 @@ def test_card_shape_adds_the_learned_template_against_the_true_part(tmp):
     assert p.returncode == 2 and "not a part of the simulator's library" in p.stderr, p.stderr
 
 
+def test_card_run_records_another_training_run_on_the_cards_test_split(tmp, tiny_model):
+    """`inseggan card-run` on a copy of a shipped model: the run (from its checkpoint) and its
+    scores (from `inseggan eval`'s results.json) become a row of the card, README.md is that
+    card, the weights are untouched, the same label replaces its row, and scores of another
+    split or of fewer frames are refused."""
+    import shutil
+
+    folder = shutil.copytree(REPO / "models" / "cone", tmp / "cone")
+    weights = (folder / "model.pt").read_bytes()
+    card = json.loads((folder / "card.json").read_text())
+    results = {"frames": card["test"]["frames"], "data": f"{card['data']['root']} (test)",
+               "refine_steps": 0, "refine_hypotheses": 1, "smooth_iters": 0,
+               "methods": {"inseggan": {"miou_all": 0.5, "miou_hard": 0.25,
+                                        "miou_hard_felzenszwalb": 0.4, "ms_per_frame": 3.0}}}
+    (tmp / "results.json").write_text(json.dumps(results))
+    ckpt = tiny_model / "run" / "best.pt"
+    args = ("card-run", folder, "--checkpoint", ckpt, "--eval", tmp / "results.json",
+            "--hardware", "a test CPU")
+    before = len(card.get("training_runs", []))
+    run_cli(*args, "--label", "tiny", check=True)
+    results["methods"]["inseggan"]["miou_all"] = 0.6
+    (tmp / "results.json").write_text(json.dumps(results))
+    run_cli(*args, "--label", "tiny", check=True)
+    card = json.loads((folder / "card.json").read_text())
+    assert len(card["training_runs"]) == before + 1
+    row = card["training_runs"][-1]
+    state = checkpoint.load(ckpt)
+    assert row["miou_all"] == 0.6 and row["iterations"] == state["iteration"]
+    assert row["nf"] == state["train_config"]["model"]["nf"] == 8
+    readme = (folder / "README.md").read_text()
+    assert readme == card_markdown(card) and "| tiny | a test CPU |" in readme
+    assert (folder / "model.pt").read_bytes() == weights
+    for bad, why in ((dict(data=f"{card['data']['root']} (val)"), "the card's test split"),
+                     (dict(frames=card["test"]["frames"] - 1), "score the run on all of them")):
+        (tmp / "results.json").write_text(json.dumps({**results, **bad}))
+        p = run_cli(*args, "--label", "bad")
+        assert p.returncode == 2 and why in p.stderr, p.stderr
+
+
 def test_quality_settings_segment_the_default_models_bag_better_than_kmeans():
     """config/quality.yaml (the node's --params-file for quality; that it sets the node's
     parameters: test_segmenter.py) on the default model's sample bag, every frame at the bag's

@@ -1,0 +1,110 @@
+"""Train on a GPU machine that has PyTorch but not the simulator, ROS or the full data set.
+
+A simulated data set is thousands of 224 x 224 frames in npz shards; what training reads is the
+preprocessed 64 x 64 model input. `pack` writes that input (and the validation labels) into one
+compressed file small enough to copy to such a machine; `train` runs `inseggan_ros.train.train`
+on it, exactly as `inseggan train --data` would, and writes a slim copy of the best checkpoint
+(generator, encoder, configs, tau: what `inseggan export` and `inseggan eval` read; no optimiser
+or discriminator state; with --half its weights in float16) so that it can be copied back.
+
+    python scripts/device_train.py pack --data data/cone --out packed/cone.npz
+    python scripts/device_train.py train --packed packed/cone.npz --config paper \
+        --minutes 7 --out runs/cone_paper_gpu --device cuda
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from inseggan_ros import checkpoint  # noqa: E402
+from inseggan_ros.preprocess import PreprocessConfig  # noqa: E402
+from inseggan_ros.train import get_config, train  # noqa: E402
+
+SLIM_KEYS = ("format", "model_config", "train_config", "preprocess_config", "data", "tau",
+             "iteration", "elapsed_seconds", "best", "history", "resets", "generator", "encoder")
+
+
+def pack(args) -> int:
+    from inseggan_ros.data import load_sim_training
+
+    tr, val, prep, info = load_sim_training(args.data, args.train_frames, progress=True)
+    tmp = args.out.with_suffix(".tmp.npz")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(
+        tmp, train_x=tr["x"].astype(np.float16), val_x=val["x"].astype(np.float16),
+        val_fg=val["fg"], val_labels=val["labels"], val_roi=val["roi"],
+        val_floor_depth=val["floor_depth"],
+        meta=np.frombuffer(json.dumps({"prep": prep.to_dict(), "info": info}).encode(), np.uint8))
+    tmp.replace(args.out)
+    print(f"{args.out}: {len(tr['x'])} training and {len(val['x'])} validation frames, "
+          f"{args.out.stat().st_size / 2**20:.1f} MiB")
+    return 0
+
+
+def unpack(path: Path) -> tuple[dict, dict, dict, dict]:
+    z = np.load(path)
+    meta = json.loads(z["meta"].tobytes().decode())
+    prep = PreprocessConfig.from_dict(meta["prep"])
+    tr = {"x": z["train_x"].astype(np.float32), "config": prep}
+    val = {"x": z["val_x"].astype(np.float32), "fg": z["val_fg"], "labels": z["val_labels"],
+           "roi": z["val_roi"], "floor_depth": z["val_floor_depth"], "config": prep}
+    return tr, val, meta["prep"], meta["info"]
+
+
+def run(args) -> int:
+    tr, val, prep, info = unpack(args.packed)
+    overrides = {"max_minutes": args.minutes, "seed": args.seed, "batch_size": args.batch_size,
+                 "nf": args.nf, "eval_every": args.eval_every,
+                 "checkpoint_every": args.eval_every}
+    cfg = get_config(args.config, **overrides)
+    print(f"{args.config}: nf {cfg.model.nf}, batch {cfg.batch_size}, {len(tr['x'])} frames, "
+          f"{args.minutes} min on {args.device}", flush=True)
+    t0 = time.perf_counter()
+    summary = train(cfg, tr, val, args.out, prep, info, device=args.device,
+                    progress=not args.quiet)
+    print(f"{args.config}: {summary['iterations']} iterations in "
+          f"{time.perf_counter() - t0:.0f} s, best validation score {summary['best_score']:.4f}",
+          flush=True)
+    state = checkpoint.load(args.out / "best.pt", map_location="cpu")
+    slim = {k: state[k] for k in SLIM_KEYS if k in state}
+    if args.half:  # weights in float16 (`checkpoint.build_models` reads them back as float32)
+        for k in ("generator", "encoder"):
+            slim[k] = {n: t.half() if t.is_floating_point() else t for n, t in slim[k].items()}
+    checkpoint.save(args.out / "slim.pt", slim)
+    return 0
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    sub = ap.add_subparsers(required=True)
+    p = sub.add_parser("pack")
+    p.add_argument("--data", type=Path, required=True)
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--train-frames", type=int)
+    p.set_defaults(func=pack)
+    p = sub.add_parser("train")
+    p.add_argument("--packed", type=Path, required=True)
+    p.add_argument("--config", required=True)
+    p.add_argument("--minutes", type=float, required=True)
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--device", default="auto")
+    p.add_argument("--seed", type=int)
+    p.add_argument("--batch-size", type=int)
+    p.add_argument("--nf", type=int)
+    p.add_argument("--eval-every", type=int)
+    p.add_argument("--half", action="store_true", help="slim checkpoint's weights in float16")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=run)
+    args = ap.parse_args(argv)
+    return args.func(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
