@@ -185,19 +185,22 @@ def _features(pose: torch.Tensor) -> torch.Tensor:
 @torch.no_grad()
 def evaluate(G, E, val: dict, tau: float) -> dict:
     """The encoder's own poses (no refinement) on validation frames: reconstruction error and,
-    where there are labels, mIoU at the model's tau."""
+    where there are labels, mIoU at the model's tau (on the models' device)."""
     from .metrics import mean_miou, miou_batch
     from .segment import labels_from_renders
 
     E.eval()
-    x = torch.from_numpy(val["x"])
-    pose = torch.cat([start_poses(G, E, x[i:i + 100])[:, 0] for i in range(0, len(x), 100)])
-    renders = G.render_poses(pose)
-    out = {"recon_l1": float((G.zbuffer(renders) - x).abs().mean())}
-    if val.get("labels") is not None:
-        fg = torch.from_numpy(val["fg"])
-        out["miou"] = float(mean_miou(miou_batch(
-            labels_from_renders(renders, tau, fg).numpy(), val["labels"])))
+    device = next(E.parameters()).device
+    x = torch.from_numpy(val["x"]).to(device)
+    with torch.no_grad():
+        pose = torch.cat([start_poses(G, E, x[i:i + 100])[:, 0]
+                          for i in range(0, len(x), 100)])
+        renders = G.render_poses(pose)
+        out = {"recon_l1": float((G.zbuffer(renders) - x).abs().mean())}
+        if val.get("labels") is not None:
+            fg = torch.from_numpy(val["fg"]).to(device)
+            out["miou"] = float(mean_miou(miou_batch(
+                labels_from_renders(renders, tau, fg).cpu().numpy(), val["labels"])))
     E.train()
     return out
 
@@ -214,12 +217,13 @@ def distill(source, train_x: np.ndarray, val: dict | None, out,
             cfg: DistillConfig = DistillConfig(),
             resume: bool = False, progress: bool = True,
             train_labels: np.ndarray | None = None,
-            user_x: np.ndarray | None = None) -> dict:
+            user_x: np.ndarray | None = None, device: str = "cpu") -> dict:
     """Fine-tune the encoder of training checkpoint `source` on `train_x` ((N, 1, 64, 64)
     prepared frames; the first `cfg.frames` are used) and, with `cfg.lambda_label` > 0, their
     ground-truth `train_labels` ((N, 64, 64): simulated scenes of the part); with
     `cfg.lambda_user` > 0, also to reconstruct `user_x` ((M, 1, 64, 64) unlabelled frames of
-    the user's camera). -> summary (also out/summary.json)."""
+    the user's camera). `device`: where the encoder trains ("auto": a GPU when there is one; the
+    pseudo-labels are refined on the CPU). -> summary (also out/summary.json)."""
     state = checkpoint.load(source)
     _, G, E = checkpoint.build_models(state, source)
     if cfg.lambda_pose > 0 and not isinstance(G, SphereGenerator):
@@ -246,6 +250,8 @@ def distill(source, train_x: np.ndarray, val: dict | None, out,
     if cfg.encoder_nf:  # an encoder of another width, pruned from this one, on the same labels
         state = {**state, "model_config": {**state["model_config"], "encoder_nf": cfg.encoder_nf}}
         E = narrowed(E, cfg.encoder_nf)
+    device = checkpoint.pick_device(device)
+    G, E = G.to(device), E.to(device)
     xt = torch.from_numpy(x)
     ut = (torch.from_numpy(np.ascontiguousarray(user_x, dtype=np.float32))
           if cfg.lambda_user > 0 else None)
@@ -267,7 +273,8 @@ def distill(source, train_x: np.ndarray, val: dict | None, out,
                   "history": history, "seconds": before + time.monotonic() - start,
                   "optimizer": opt.state_dict(), "generator": gen.get_state()}
         checkpoint.save(path, {**{k: v for k, v in state.items() if k != "format"},
-                               "encoder": E.state_dict(), "distill": record})
+                               "encoder": {k: v.cpu() for k, v in E.state_dict().items()},
+                               "distill": record})
 
     def validate() -> bool:
         nonlocal best
@@ -292,8 +299,9 @@ def distill(source, train_x: np.ndarray, val: dict | None, out,
     stats = {}
     while it < cfg.iterations:
         idx = torch.randint(0, len(xt), (cfg.batch_size,), generator=gen)
-        xb, target, lb = _symmetry_batch(xt[idx], pseudo[idx] if pseudo is not None else None,
-                                         gen, lab[idx] if lab is not None else None)
+        xb, target, lb = (t.to(device) if t is not None else None for t in _symmetry_batch(
+            xt[idx], pseudo[idx] if pseudo is not None else None, gen,
+            lab[idx] if lab is not None else None))
         z = E(xb)
         B, n, d = z.shape
         pose = G.pose(z.reshape(B * n, d)).reshape(B, n, 6)
@@ -309,7 +317,7 @@ def distill(source, train_x: np.ndarray, val: dict | None, out,
         l_user = renders.new_zeros(())
         if ut is not None:  # the user's frames: nothing known but the frame itself
             ub = _symmetry_batch(ut[torch.randint(0, len(ut), (cfg.batch_size,), generator=gen)],
-                                 None, gen)[0]
+                                 None, gen)[0].to(device)
             zu = E(ub)
             upose = G.pose(zu.reshape(B * n, d)).reshape(B, n, 6)
             l_user = losses.pyramid_l1(G.zbuffer(G.render_poses(upose)), ub, cfg.recon_levels)

@@ -10,6 +10,10 @@ or discriminator state; with --half its weights in float16) so that it can be co
     python scripts/device_train.py pack --data data/cone --out packed/cone.npz
     python scripts/device_train.py train --packed packed/cone.npz --config paper \
         --minutes 7 --out runs/cone_paper_gpu --device cuda
+
+The loop's encoder stage, too: `pack --with-labels` on the simulated piles of a learned part
+(`inseggan loop`'s sim/ folder), then `distill` from the shape stage's checkpoint with the
+loop's settings (labels, ownership 0.2, cosine learning rate), any number of iterations.
 """
 from __future__ import annotations
 
@@ -37,8 +41,9 @@ def pack(args) -> int:
     tr, val, prep, info = load_sim_training(args.data, args.train_frames, progress=True)
     tmp = args.out.with_suffix(".tmp.npz")
     args.out.parent.mkdir(parents=True, exist_ok=True)
+    extra = {"train_labels": tr["labels"]} if args.with_labels else {}
     np.savez_compressed(
-        tmp, train_x=tr["x"].astype(np.float16), val_x=val["x"].astype(np.float16),
+        tmp, **extra, train_x=tr["x"].astype(np.float16), val_x=val["x"].astype(np.float16),
         val_fg=val["fg"], val_labels=val["labels"], val_roi=val["roi"],
         val_floor_depth=val["floor_depth"],
         meta=np.frombuffer(json.dumps({"prep": prep.to_dict(), "info": info}).encode(), np.uint8))
@@ -52,7 +57,8 @@ def unpack(path: Path) -> tuple[dict, dict, dict, dict]:
     z = np.load(path)
     meta = json.loads(z["meta"].tobytes().decode())
     prep = PreprocessConfig.from_dict(meta["prep"])
-    tr = {"x": z["train_x"].astype(np.float32), "config": prep}
+    tr = {"x": z["train_x"].astype(np.float32), "config": prep,
+          "labels": z["train_labels"] if "train_labels" in z else None}
     val = {"x": z["val_x"].astype(np.float32), "fg": z["val_fg"], "labels": z["val_labels"],
            "roi": z["val_roi"], "floor_depth": z["val_floor_depth"], "config": prep}
     return tr, val, meta["prep"], meta["info"]
@@ -81,6 +87,32 @@ def run(args) -> int:
     return 0
 
 
+def distill(args) -> int:
+    from inseggan_ros.distill import DistillConfig, distill as run_distill
+
+    tr, val, _, _ = unpack(args.packed)
+    if tr["labels"] is None:
+        raise SystemExit(f"{args.packed}: no training labels (pack it with --with-labels)")
+    iterations = args.iterations
+    if args.minutes:  # as many iterations as fit: timed on a short probe run first
+        probe = DistillConfig(frames=len(tr["x"]), iterations=100, lambda_pose=0.0,
+                              lambda_label=1.0, batch_size=args.batch_size, eval_every=100)
+        t0 = time.perf_counter()
+        run_distill(args.checkpoint, tr["x"], None, args.out / "probe", probe, progress=False,
+                    train_labels=tr["labels"], device=args.device)
+        iterations = int(100 / (time.perf_counter() - t0) * args.minutes * 60 * 0.9)
+        print(f"probe: {iterations} iterations fit in {args.minutes} min", flush=True)
+    cfg = DistillConfig(frames=len(tr["x"]), iterations=iterations, lr=args.lr,
+                        lr_schedule="cosine", eval_every=args.eval_every, lambda_pose=0.0,
+                        lambda_label=1.0, lambda_ownership=args.ownership_weight,
+                        batch_size=args.batch_size, seed=args.seed, eval_frames=len(val["x"]))
+    s = run_distill(args.checkpoint, tr["x"], val, args.out, cfg, progress=not args.quiet,
+                    train_labels=tr["labels"], device=args.device)
+    print(f"distilled {s['iterations']} iterations in {s['seconds']:.0f} s, best validation "
+          f"mIoU {s['best_score']:.4f}", flush=True)
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     sub = ap.add_subparsers(required=True)
@@ -88,6 +120,7 @@ def main(argv=None) -> int:
     p.add_argument("--data", type=Path, required=True)
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--train-frames", type=int)
+    p.add_argument("--with-labels", action="store_true", help="also the training labels")
     p.set_defaults(func=pack)
     p = sub.add_parser("train")
     p.add_argument("--packed", type=Path, required=True)
@@ -102,6 +135,20 @@ def main(argv=None) -> int:
     p.add_argument("--half", action="store_true", help="slim checkpoint's weights in float16")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=run)
+    p = sub.add_parser("distill")
+    p.add_argument("--packed", type=Path, required=True)
+    p.add_argument("--checkpoint", type=Path, required=True, help="the shape stage's best.pt")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--iterations", type=int, default=3000)
+    p.add_argument("--minutes", type=float, help="instead of --iterations: what fits in this")
+    p.add_argument("--batch-size", type=int, default=32)
+    p.add_argument("--lr", type=float, default=3e-4)
+    p.add_argument("--ownership-weight", type=float, default=0.2)
+    p.add_argument("--eval-every", type=int, default=500)
+    p.add_argument("--seed", type=int, default=11)
+    p.add_argument("--device", default="auto")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=distill)
     args = ap.parse_args(argv)
     return args.func(args)
 
