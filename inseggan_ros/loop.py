@@ -107,13 +107,14 @@ class BagFrames:
             raise ValueError(f"held_out {self.held_out!r} invalid; valid: between 0 and 1")
         object.__setattr__(self, "path", Path(self.path))
 
-    def frames(self, prep) -> tuple[dict, dict]:
+    def frames(self, prep, limit: int | None = None) -> tuple[dict, dict]:
         """(the frames before the held-out cut, the held-out ones), preprocessed with `prep`
-        (`data.load_bag`; labels only from `labels_topic`)."""
+        (`data.load_bag`; labels only from `labels_topic`); each at most `limit`, spread
+        evenly (`selfcheck.split_held_out`, as `modelcard.export_from_bag` takes them)."""
         from . import selfcheck
 
         frames = selfcheck.load_bag_frames(self.path, prep, self.topic, self.labels_topic)
-        before, held = selfcheck.split_held_out(frames, self.held_out)
+        before, held = selfcheck.split_held_out(frames, self.held_out, limit)
         if len(before["x"]) < 2:
             raise ValueError(f"{self.path}: {len(frames['x'])} frames are too few; valid: "
                              f"enough that the last {100 * self.held_out:.0f} % (held out) is a "
@@ -221,8 +222,7 @@ def label_head_stage(model: Path, sim: Path, data, out: Path, cfg: LoopConfig,
         return out / "model.pt"
     seg = Segmenter.from_checkpoint(model, device="cpu")
     if isinstance(data, BagFrames):
-        calib = data.frames(seg.prep_cfg)[0]
-        calib = {k: calib[k][:200] for k in ("x", "fg")}
+        calib = data.frames(seg.prep_cfg, limit=200)[0]  # the 200 the export calibrates on
     else:
         calib = data_mod.load_sim_split(data, "val", seg.prep_cfg, limit=200)
     tau, _ = calibrate(seg, calib["x"], calib["fg"])
