@@ -530,7 +530,10 @@ def add_training_run(model_dir, checkpoint_path, eval_results, label: str,
               "composite": t["model"]["composite"], "batch_size": t["batch_size"],
               "iterations": int(state["iteration"]),
               "wall_minutes": round(float(state["elapsed_seconds"]) / 60, 1),
-              "distilled": bool(state.get("distill")),
+              "encoder_iterations": int(state["distill"]["iteration"])
+              if state.get("distill") else 0,  # the encoder fitted further (`inseggan distill`)
+              "encoder_minutes": round(float(state["distill"]["seconds"]) / 60, 1)
+              if state.get("distill") else 0.0,
               "settings": {k: res[k] for k in ("refine_steps", "refine_hypotheses",
                                                "smooth_iters")},
               "miou_all": m["miou_all"], "miou_hard": m.get("miou_hard"),
@@ -559,18 +562,23 @@ def _runs_lines(card: dict) -> list[str]:
         return "-" if v is None else f"{v:.3f}"
 
     lines = ["## Other training runs", "",
-             "The GAN alone (its checkpoint's encoder, one start, no refinement or smoothing, "
-             "unless the settings column says otherwise), on the same test frames "
-             "(`inseggan card-run`); iterations and minutes up to the checkpoint kept (the best "
-             "on the validation frames), milliseconds a frame on the CPU that scored it:", "",
+             "Other runs on the same test frames (`inseggan card-run`), with the settings of "
+             "their row (refinement steps, starting points, smoothing iterations; 0, 1, 0: the "
+             "GAN's own encoder alone); iterations and minutes up to the checkpoint kept (the "
+             "best on the validation frames), the GAN's, then (+) the encoder's fitted further "
+             "where it was; milliseconds a frame on the CPU that scored it:", "",
              "| run | hardware | template, nf, batch | iterations | minutes | settings "
              "(refine, starts, smooth) | all | hard: K-Means | hard: Felzenszwalb | ms / frame |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for r in runs:
         s = r["settings"]
+        its, mins = str(r["iterations"]), str(r["wall_minutes"])
+        if r.get("encoder_iterations"):
+            its += f" + {r['encoder_iterations']}"
+            mins += f" + {r['encoder_minutes']}"
         lines.append(
             f"| {r['label']} | {r['hardware']} | {r['renderer']} ({r['composite']}), "
-            f"{r['nf']}, {r['batch_size']} | {r['iterations']} | {r['wall_minutes']} | "
+            f"{r['nf']}, {r['batch_size']} | {its} | {mins} | "
             f"{s['refine_steps']}, {s['refine_hypotheses']}, {s['smooth_iters']} | "
             f"{f(r['miou_all'])} | {f(r['miou_hard'])} | {f(r['miou_hard_felzenszwalb'])} | "
             f"{r['ms_per_frame']:.1f} |")
