@@ -5,6 +5,8 @@ unlabelled training frames, one shard of them per process; no true label is read
 
     for i in 0 1; do python scripts/experiments/self_labels.py $i 2 & done; wait
     python scripts/experiments/self_distill.py 1500
+
+Optional arguments after those: the part (cone) and the number of frames (1500).
 """
 import sys
 import time
@@ -19,14 +21,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from inseggan_ros import data, settings  # noqa: E402
 from inseggan_ros.segment import Segmenter  # noqa: E402
 
-FRAMES = 1500
-
 if __name__ == "__main__":
     torch.set_num_threads(1)
     part, parts = int(sys.argv[1]), int(sys.argv[2])
-    x = data.load_sim_split("data/cone", "train", limit=FRAMES)
+    name = sys.argv[3] if len(sys.argv) > 3 else "cone"
+    frames = int(sys.argv[4]) if len(sys.argv) > 4 else 1500
+    x = data.load_sim_split(f"data/{name}", "train", limit=frames)
     idx = np.arange(part, len(x["x"]), parts)
-    seg = Segmenter.from_checkpoint("models/cone/model.pt", device="cpu")
+    seg = Segmenter.from_checkpoint(f"models/{name}/model.pt", device="cpu")
     params = yaml.safe_load(open("config/quality.yaml"))["/**/segmenter"]["ros__parameters"]
     cfg = settings.apply(seg.inference, params)
     out = np.zeros((len(idx), 64, 64), np.uint8)
@@ -35,4 +37,4 @@ if __name__ == "__main__":
         b = idx[k:k + 25]
         out[k:k + 25] = seg.segment_batch(x["x"][b], x["fg"][b], settings=cfg)["labels"].numpy()
         print(part, k, round(time.time() - t0), flush=True)
-    np.savez(f"runs/self_labels_{part}.npz", idx=idx, labels=out)
+    np.savez(f"runs/self_labels_{name}_{part}.npz", idx=idx, labels=out)
