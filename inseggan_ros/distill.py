@@ -192,15 +192,13 @@ def evaluate(G, E, val: dict, tau: float) -> dict:
     E.eval()
     device = next(E.parameters()).device
     x = torch.from_numpy(val["x"]).to(device)
-    with torch.no_grad():
-        pose = torch.cat([start_poses(G, E, x[i:i + 100])[:, 0]
-                          for i in range(0, len(x), 100)])
-        renders = G.render_poses(pose)
-        out = {"recon_l1": float((G.zbuffer(renders) - x).abs().mean())}
-        if val.get("labels") is not None:
-            fg = torch.from_numpy(val["fg"]).to(device)
-            out["miou"] = float(mean_miou(miou_batch(
-                labels_from_renders(renders, tau, fg).cpu().numpy(), val["labels"])))
+    pose = torch.cat([start_poses(G, E, x[i:i + 100])[:, 0] for i in range(0, len(x), 100)])
+    renders = G.render_poses(pose)
+    out = {"recon_l1": float((G.zbuffer(renders) - x).abs().mean())}
+    if val.get("labels") is not None:
+        fg = torch.from_numpy(val["fg"]).to(device)
+        out["miou"] = float(mean_miou(miou_batch(
+            labels_from_renders(renders, tau, fg).cpu().numpy(), val["labels"])))
     E.train()
     return out
 

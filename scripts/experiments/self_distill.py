@@ -32,6 +32,5 @@ if __name__ == "__main__":
                         lr_schedule="cosine", eval_every=10**6, lambda_pose=0.0,
                         lambda_label=1.0, lambda_ownership=0.2, seed=11)
     s = distill(f"models/{name}/model.pt", tr["x"], None, f"runs/{name}_self", cfg,
-                progress=False,
-                train_labels=lab)
+                progress=False, train_labels=lab)
     print(s["iterations"], s["seconds"])

@@ -14,7 +14,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
@@ -29,8 +28,7 @@ if __name__ == "__main__":
     x = data.load_sim_split(f"data/{name}", "train", limit=frames)
     idx = np.arange(part, len(x["x"]), parts)
     seg = Segmenter.from_checkpoint(f"models/{name}/model.pt", device="cpu")
-    params = yaml.safe_load(open("config/quality.yaml"))["/**/segmenter"]["ros__parameters"]
-    cfg = settings.apply(seg.inference, params)
+    cfg = settings.apply(seg.inference, settings.read_params_file("config/quality.yaml"))
     out = np.zeros((len(idx), 64, 64), np.uint8)
     t0 = time.time()
     for k in range(0, len(idx), 25):
