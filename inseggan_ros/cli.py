@@ -260,12 +260,68 @@ def cmd_distill(args) -> int:
     return 0
 
 
+def _bag_or_data(args):
+    """--bag (with --instances and its options) or --data, as `loop` and `self-fit` take them."""
+    from .loop import BagFrames
+
+    if args.bag is not None:
+        if args.instances is None:
+            raise ValueError("--bag needs --instances N (the parts in the bin: the piles are "
+                             "simulated with that many)")
+        return BagFrames(args.bag, args.instances, args.topic, args.labels_topic,
+                         args.noise or "none", args.held_out)
+    only_bag = ("instances", "topic", "labels_topic", "noise")
+    given = [f"--{k.replace('_', '-')}" for k in only_bag if getattr(args, k, None) is not None]
+    if given:
+        raise ValueError(f"{', '.join(given)} go with --bag; a data set names its own")
+    return args.data
+
+
+def _frames_args(p) -> None:
+    """The user's frames: --data, or --bag and its options (`loop`, `self-fit`)."""
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--data", type=Path,
+                     help="the user's data set (its camera, noise and bin are simulated; its "
+                          "val and test frames make the card, without their labels)")
+    src.add_argument("--bag", type=Path,
+                     help="the user's recording (depth and CameraInfo, no labels): its camera "
+                          "and bin are estimated and simulated; its last frames (--held-out) "
+                          "make the card")
+    p.add_argument("--instances", type=int,
+                   help="with --bag (required): the parts in the bin")
+    p.add_argument("--topic", help="with --bag: the depth topic (default: the only one)")
+    p.add_argument("--labels-topic", help="with --bag: a label image topic, for the card's "
+                                          "mIoU rows only (never trained on)")
+    p.add_argument("--noise", help="with --bag: the simulator's noise preset for the piles "
+                                   "(none)")
+    p.add_argument("--held-out", type=float, default=0.2,
+                   help="with --bag: the last fraction of its frames, kept for the card (0.2)")
+
+
+def cmd_self_fit(args) -> int:
+    from .loop import LoopConfig, run_self_fit
+
+    cfg = LoopConfig(self_frames=args.frames, self_iterations=args.iterations,
+                     self_settings=args.settings, workers=args.workers, name=args.name,
+                     seed=args.seed)
+    t0 = time.perf_counter()
+    s = run_self_fit(args.model, _bag_or_data(args), args.out, cfg, progress=not args.quiet)
+    print(f"self-fit done in {(time.perf_counter() - t0) / 60:.1f} min ("
+          + ", ".join(f"{k} {v / 60:.1f} min" for k, v in s["seconds"].items())
+          + f"); {s['encoder']['pseudo_label_frames']} frames labelled at {args.settings} "
+          f"settings, {s['encoder']['iterations']} iterations; checkpoint {args.out}/last.pt; "
+          f"model: {args.out}/model (tau {s['tau']:.2f}), card {s['card']}")
+    return 0
+
+
 def cmd_loop(args) -> int:
-    from .loop import BagFrames, LoopConfig, run
+    from .loop import LoopConfig, run
 
     cfg = LoopConfig(scenes=args.scenes, val_scenes=args.val_scenes, iterations=args.iterations,
                      lr=args.lr, seed=args.seed, workers=args.workers, name=args.name,
-                     user_weight=args.user_weight, head_iterations=args.head_iterations)
+                     user_weight=args.user_weight, head_iterations=args.head_iterations,
+                     self_frames=args.self_frames, self_iterations=args.self_iterations,
+                     self_settings=args.self_settings)
     train_cfg = None
     if args.model is None:
         from .train import get_config
@@ -277,18 +333,7 @@ def cmd_loop(args) -> int:
     elif args.train_minutes is not None or args.train_iterations is not None:
         raise ValueError("--train-minutes/--train-iterations learn the shape first: without "
                          "--model only")
-    if args.bag is not None:
-        if args.instances is None:
-            raise ValueError("--bag needs --instances N (the parts in the bin: the piles are "
-                             "simulated with that many)")
-        frames = BagFrames(args.bag, args.instances, args.topic, args.labels_topic,
-                           args.noise or "none", args.held_out)
-    else:
-        only_bag = ("instances", "topic", "labels_topic", "noise")
-        given = [f"--{k.replace('_', '-')}" for k in only_bag if getattr(args, k) is not None]
-        if given:
-            raise ValueError(f"{', '.join(given)} go with --bag; a data set names its own")
-        frames = args.data
+    frames = _bag_or_data(args)
     t0 = time.perf_counter()
     summary = run(args.model, frames, args.out, cfg, progress=not args.quiet,
                   train_cfg=train_cfg)
@@ -736,30 +781,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--train-seed", type=int, default=1)
     p.add_argument("--eval-every", type=int, default=100,
                    help="without --model: validate and checkpoint every N iterations (100)")
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--data", type=Path,
-                     help="the user's data set (its camera, noise and bin are simulated; its "
-                          "val and test frames make the card, without their labels)")
-    src.add_argument("--bag", type=Path,
-                     help="the user's recording (depth and CameraInfo, no labels): its camera "
-                          "and bin are estimated and simulated; its last frames (--held-out) "
-                          "make the card")
-    p.add_argument("--instances", type=int,
-                   help="with --bag (required): the parts in the bin")
-    p.add_argument("--topic", help="with --bag: the depth topic (default: the only one)")
-    p.add_argument("--labels-topic", help="with --bag: a label image topic, for the card's "
-                                          "mIoU rows only (never trained on)")
-    p.add_argument("--noise", help="with --bag: the simulator's noise preset for the piles "
-                                   "(none)")
-    p.add_argument("--held-out", type=float, default=0.2,
-                   help="with --bag: the last fraction of its frames, kept for the card (0.2)")
+    _frames_args(p)
     p.add_argument("--out", type=Path, required=True, help="run directory (resumable)")
     p.add_argument("--scenes", type=int, default=3000, help="simulated training scenes (3000)")
     p.add_argument("--val-scenes", type=int, default=200)
     p.add_argument("--iterations", type=int, default=3000, help="encoder iterations (3000)")
     p.add_argument("--lr", type=float, default=3e-4, help="their learning rate (3e-4, cosine)")
     p.add_argument("--seed", type=int, default=11, help="of the simulated scenes (11)")
-    p.add_argument("--workers", type=int, default=1, help="simulation processes (1)")
+    p.add_argument("--workers", type=int, default=1,
+                   help="simulation and self-labelling processes (1)")
     p.add_argument("--user-weight", type=float, default=0.0,
                    help="the encoder also reconstructs the data set's own training frames "
                         "(not their labels), with this weight (0: off)")
@@ -767,9 +797,39 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also train a label head on the same piles for this many iterations "
                         "and ship the model with it on (0, the default: none; measured: "
                         "docs/experiments.md, 2026-11-25, a label head)")
+    p.add_argument("--self-frames", type=int, default=0,
+                   help="then fit the encoder further to the model's own labels (at "
+                        "--self-settings) of this many of the user's training frames, no label "
+                        "read (0, the default: no such stage; measured: docs/experiments.md, "
+                        "2026-11-26); run again on a finished loop's OUT, it adds only this")
+    p.add_argument("--self-iterations", type=int, default=1500,
+                   help="with --self-frames: encoder iterations (1500; the last is kept)")
+    p.add_argument("--self-settings", default="quality",
+                   help="with --self-frames: the settings that label the frames (quality)")
     p.add_argument("--name", default="model", help="the exported model's name")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_loop)
+
+    p = sub.add_parser("self-fit", help="fit a model's encoder further to its own labels (at "
+                                        "the quality settings) of the user's unlabelled frames, "
+                                        "and ship it with a label-free card")
+    p.add_argument("--model", type=Path, required=True,
+                   help="a model folder or checkpoint (the loop's OUT/encoder/best.pt keeps "
+                        "the card's account of the loop)")
+    _frames_args(p)
+    p.add_argument("--out", type=Path, required=True,
+                   help="run directory (resumable): last.pt, labels.npz, model/")
+    p.add_argument("--frames", type=int, default=1500,
+                   help="the user's training frames labelled and fitted to (1500)")
+    p.add_argument("--iterations", type=int, default=1500, help="encoder iterations (1500)")
+    p.add_argument("--settings", default="quality",
+                   help="the settings that label the frames: a parameters file or a shipped "
+                        "one's name (quality)")
+    p.add_argument("--workers", type=int, default=2, help="labelling processes (2)")
+    p.add_argument("--seed", type=int, default=11)
+    p.add_argument("--name", default="model", help="the exported model's name")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_self_fit)
 
     p = sub.add_parser("head", help="train a label head for a model on labelled simulated "
                                     "scenes (the loop's OUT/sim)")

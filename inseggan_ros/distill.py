@@ -64,6 +64,9 @@ class DistillConfig:
     lambda_user: float = 0.0  # weight of the reconstruction loss on a second batch, of the
     # user's own unlabelled frames (`user_x`): keeps an encoder fitted to simulated scenes
     # explaining the frames it will see
+    labels: str = "simulated"  # where `train_labels` come from, for the card: "simulated"
+    # (known labels of simulated piles, `loop`) or "self" (the model's own labels of the
+    # user's frames, `selffit`)
 
     def __post_init__(self):
         for name in ("frames", "refine_steps", "hypotheses", "chunk", "iterations", "batch_size",
@@ -83,6 +86,8 @@ class DistillConfig:
 
         if not self.lambda_user >= 0:
             raise ValueError(f"lambda_user {self.lambda_user!r} invalid; valid: >= 0")
+        if self.labels not in ("simulated", "self"):
+            raise ValueError(f"labels {self.labels!r} invalid; valid: simulated, self")
         if self.lr_schedule not in ("constant", "cosine"):
             raise ValueError(f"lr_schedule {self.lr_schedule!r} invalid; valid: constant, cosine")
         if self.encoder_nf != 0 and (self.encoder_nf < 8 or self.encoder_nf % 8):
@@ -215,14 +220,20 @@ def distill(source, train_x: np.ndarray, val: dict | None, out,
             cfg: DistillConfig = DistillConfig(),
             resume: bool = False, progress: bool = True,
             train_labels: np.ndarray | None = None,
-            user_x: np.ndarray | None = None, device: str = "cpu") -> dict:
+            user_x: np.ndarray | None = None, device: str = "cpu",
+            self_fit: dict | None = None) -> dict:
     """Fine-tune the encoder of training checkpoint `source` on `train_x` ((N, 1, 64, 64)
     prepared frames; the first `cfg.frames` are used) and, with `cfg.lambda_label` > 0, their
     ground-truth `train_labels` ((N, 64, 64): simulated scenes of the part); with
     `cfg.lambda_user` > 0, also to reconstruct `user_x` ((M, 1, 64, 64) unlabelled frames of
     the user's camera). `device`: where the encoder trains ("auto": a GPU when there is one; the
-    pseudo-labels are refined on the CPU). -> summary (also out/summary.json)."""
+    pseudo-labels are refined on the CPU). `self_fit`: how the labels were made when they are
+    the model's own (`selffit`), for the card. The source's own distillation, if any, is kept in
+    the new record as "previous". -> summary (also out/summary.json)."""
+    from .modelcard import distill_record
+
     state = checkpoint.load(source)
+    previous = distill_record(state)
     _, G, E = checkpoint.build_models(state, source)
     if cfg.lambda_pose > 0 and not isinstance(G, SphereGenerator):
         raise ValueError(f"{source}: distillation needs a rod template (renderer 'spheres': "
@@ -268,9 +279,11 @@ def distill(source, train_x: np.ndarray, val: dict | None, out,
 
     def save(path: Path) -> None:
         record = {"config": asdict(cfg), "source": str(source), "iteration": it, "best": best,
+                  "previous": previous, "self_fit": self_fit,
                   "history": history, "seconds": before + time.monotonic() - start,
                   "optimizer": opt.state_dict(), "generator": gen.get_state()}
-        checkpoint.save(path, {**{k: v for k, v in state.items() if k != "format"},
+        checkpoint.save(path, {**{k: v for k, v in state.items()
+                                  if k not in ("format", "distill_record")},
                                "encoder": {k: v.cpu() for k, v in E.state_dict().items()},
                                "distill": record})
 

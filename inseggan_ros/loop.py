@@ -32,7 +32,10 @@ resumes from its last checkpoint; the export writes its folder atomically):
      with `--user-weight`, while also reconstructing the user's own unlabelled training frames;
   3. head (only with `head_iterations`): a label head (`label_head.py`) taught on the same
      piles to correct the z-buffer's labels; the model with it is out/head/model.pt;
-  4. export: out/model, tau and the card from the user's validation and test frames as if they
+  4. self (only with `self_frames`): the encoder fitted further to the model's own labels, at
+     `self_settings`, of the user's training frames (`selffit.py`; no label read) ->
+     out/self/last.pt;
+  5. export: out/model, tau and the card from the user's validation and test frames as if they
      had no labels (the test split's labels, where it has them, give the card's mIoU rows); for
      a bag, its frames before and after the held-out cut (labels from `labels_topic` only).
 Writes out/summary.json with the time of each stage.
@@ -67,11 +70,19 @@ class LoopConfig:
     head_iterations: int = 0  # of a label head on the same scenes (0 = none; it helped the
     # cone and hurt the pin connector: docs/experiments.md)
     seed: int = 11  # of the simulated scenes
-    workers: int = 1  # simulation processes
+    workers: int = 1  # simulation processes (and self-labelling processes)
     name: str = "model"  # the exported model's name
+    self_frames: int = 0  # of the user's training frames the encoder is then fitted to, with
+    # the model's own labels of them (`selffit`; 0 = no such stage)
+    self_iterations: int = 1500
+    self_settings: str = "quality"  # the settings those labels are made with
 
     def __post_init__(self):
-        for key in ("scenes", "val_scenes", "iterations", "workers", "user_frames"):
+        if self.self_frames < 0:
+            raise ValueError(f"self_frames {self.self_frames!r} invalid; valid: >= 0 (0 = no "
+                             "self-fitting stage)")
+        for key in ("scenes", "val_scenes", "iterations", "workers", "user_frames",
+                    "self_iterations"):
             if getattr(self, key) < 1:
                 raise ValueError(f"{key} {getattr(self, key)!r} invalid; valid: >= 1")
         if self.head_iterations < 0:
@@ -232,6 +243,65 @@ def label_head_stage(model: Path, sim: Path, data, out: Path, cfg: LoopConfig,
                     as_given=isinstance(data, BagFrames))["model"])
 
 
+def self_stage(model: Path, data, out: Path, cfg: LoopConfig, progress: bool = True) -> Path:
+    """Stage 4: `selffit.self_fit` of the model on the user's training frames (a data set's
+    train split, or a bag's frames before the held-out cut), tau from the 200 frames the export
+    calibrates on -> out/last.pt."""
+    from . import data as data_mod
+    from .segment import Segmenter
+    from .selffit import SelfFitConfig, self_fit
+
+    prep = Segmenter.from_checkpoint(model, device="cpu").prep_cfg
+    if isinstance(data, BagFrames):
+        frames = data.frames(prep)[0]
+        calib = data.frames(prep, limit=200)[0]
+    else:
+        frames = data_mod.load_sim_split(data, "train", limit=cfg.self_frames, progress=progress)
+        calib = data_mod.load_sim_split(data, "val", prep, limit=200)
+    scfg = SelfFitConfig(frames=cfg.self_frames, iterations=cfg.self_iterations,
+                         settings=cfg.self_settings, lr=cfg.lr, label_weight=cfg.label_weight,
+                         ownership_weight=cfg.ownership_weight, workers=cfg.workers,
+                         seed=cfg.seed)
+    return self_fit(model, frames, calib, out, scfg, progress)
+
+
+def run_self_fit(model, data, out, cfg: LoopConfig, progress: bool = True) -> dict:
+    """Stage 4 alone, for a finished model (`inseggan self-fit`): out/last.pt, then exported
+    as stage 5 exports, to out/model -> summary (also out/summary.json)."""
+    from .modelcard import export_from_bag, export_from_dataset
+
+    from .selffit import check_settings
+
+    if not cfg.self_frames:
+        raise ValueError("self_frames 0 invalid; valid: >= 1 (the frames to fit to)")
+    file = _model_file(model).resolve()
+    check_settings(cfg.self_settings)
+    if isinstance(data, BagFrames):
+        from .paths import resolve_bag
+
+        resolve_bag(str(data.path), "--bag")
+    else:
+        _same_view(file, data)
+    out = Path(out)
+    t0 = time.monotonic()
+    finished = self_stage(file, data, out, cfg, progress)
+    seconds = {"self": round(time.monotonic() - t0, 1)}
+    t0 = time.monotonic()
+    card = (export_from_dataset(finished, data, cfg.name, out / "model")
+            if not isinstance(data, BagFrames) else
+            export_from_bag(finished, data.path, cfg.name, out / "model", data.topic,
+                            data.labels_topic, data.held_out))
+    seconds["export"] = round(time.monotonic() - t0, 1)
+    summary = {"model": str(model), "config": asdict(cfg), "seconds": seconds,
+               "data": str(data) if not isinstance(data, BagFrames) else data.describe(),
+               "encoder": json.loads((out / "summary.json").read_text()),
+               "card": str(out / "model" / "card.json"), "tau": card.get("tau")}
+    tmp = out / "self_fit.json.tmp"
+    tmp.write_text(json.dumps(summary, indent=2, default=str))
+    tmp.replace(out / "self_fit.json")
+    return summary
+
+
 def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
         train_cfg=None) -> dict:
     """The loop for `model` (its learned template) and the user's frames `data` (a data set's
@@ -250,6 +320,10 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
                          "(not both)")
     if model is not None:
         _model_file(model)  # a missing model is named before anything else
+    if cfg.self_frames:
+        from .selffit import check_settings
+
+        check_settings(cfg.self_settings)
     bag = data if isinstance(data, BagFrames) else None
     if bag is None:
         meta = load_meta(data)  # raises with what is wrong
@@ -260,9 +334,9 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     seconds: dict[str, float] = {}
-    stages = tqdm(total=(3 if model is not None else 4) + bool(cfg.head_iterations), desc="loop",
-                  unit="stage",
-                  disable=not progress, position=0)
+    stages = tqdm(total=(3 if model is not None else 4) + bool(cfg.head_iterations)
+                  + bool(cfg.self_frames), desc="loop", unit="stage", disable=not progress,
+                  position=0)
     if model is None:
         t0 = time.monotonic()
         model = learn_shape(data, out / "shape", train_cfg, progress)
@@ -313,6 +387,11 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
         t0 = time.monotonic()
         finished = label_head_stage(finished, sim, data, out / "head", cfg, progress)
         seconds["head"] = round(time.monotonic() - t0, 1)
+        stages.update(1)
+    if cfg.self_frames:
+        t0 = time.monotonic()
+        finished = self_stage(finished, data, out / "self", cfg, progress)
+        seconds["self"] = round(time.monotonic() - t0, 1)
         stages.update(1)
 
     t0 = time.monotonic()

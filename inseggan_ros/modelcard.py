@@ -21,6 +21,7 @@ and mIoU against K-Means and Felzenszwalb only where a label topic is named:
 from __future__ import annotations
 
 import json
+import math
 import os
 import platform
 import shutil
@@ -82,8 +83,8 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, inference=None,
     val_full = scores[tau] if plain and tau in scores else _val_miou(seg, val)
 
     # 2. half precision only if it costs nothing measurable
-    keep = {k: v for k, v in state.items()
-            if k not in ("discriminator", "optimizers", "rng", "format", "distill")}
+    keep = {k: v for k, v in state.items() if k not in TRAINING_ONLY}
+    keep["distill_record"] = distill_record(state)  # the card's account, kept for a re-fit
     keep["tau"] = tau
     keep["inference"] = seg.inference.to_dict()
     precision, val_half = "float32", None
@@ -138,12 +139,19 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, inference=None,
         # natively
         "encoder_precision": seg.resolve_precision(inference.encoder_precision),
         "also": {k: v.to_dict() for k, v in (also or {}).items()},
-        "distillation": _distill_record(state),
+        "distillation": distill_record(state),
         "precision": precision,
         "sample_bag": sample_bag, "sample_bag_scores": bag_scores,
         "val_miou": {"float32": val_full, "float16": val_half},
         "test": summary,
     }
+    previous = Path(out_dir) / "card.json"  # a re-export keeps the other runs on the same split
+    if previous.is_file():
+        runs = json.loads(previous.read_text()).get("training_runs")
+        old_data = json.loads(previous.read_text()).get("data", {})
+        if runs and old_data.get("root") == card["data"]["root"] \
+                and old_data.get("counts") == card["data"]["counts"]:
+            card["training_runs"] = runs
 
     def write(tmp: Path) -> None:
         ckpt.save(tmp / "model.pt", keep)
@@ -211,14 +219,15 @@ def export_label_free(checkpoint_path, name: str, out_dir, calib: dict, held: di
         labelled = evaluate.summarise(results, len(held["x"]))
 
     keep = {k: v for k, v in state.items() if k not in TRAINING_ONLY}
-    keep.update(tau=seg.tau, inference=seg.inference.to_dict(), precision="float32")
+    keep.update(tau=seg.tau, inference=seg.inference.to_dict(), precision="float32",
+                distill_record=distill_record(state))
     inf = seg.inference
     card = {
         "name": name, "label_free": True, "n_instances": seg.model_cfg.n_instances,
         "model_config": state["model_config"], "train_config": state.get("train_config"),
         "training_data": state.get("data"), "iterations": state.get("iteration"),
         "wall_minutes": round(state.get("elapsed_seconds", 0) / 60, 1),
-        "checkpoint": str(checkpoint_path),
+        "checkpoint": str(checkpoint_path), "distillation": distill_record(state),
         "hardware": f"{platform.machine()} CPU, {os.cpu_count()} cores (torch threads: 1)",
         "source": source,
         "calibration": {"frames": len(calib["x"]), "index": _span(calib.get("index")),
@@ -323,6 +332,7 @@ def label_free_markdown(card: dict) -> str:
         f"{m['composite']}, nf {m['nf']}, latent {m['latent_dim']}",
         f"* **Training:** {trained}; {card['iterations']} iterations, {card['wall_minutes']} min "
         f"wall time",
+        *_distill_line(card),
         f"* **Checked on:** {src['description']}: {src['frames']} frames. tau calibrated without "
         f"labels on {cal['frames']} frames{_frames_text(cal)}, measured on {held['frames']} "
         f"held-out frames{_frames_text(held)}: {src['held_out_rule']}",
@@ -410,9 +420,25 @@ def _settings_text(d: dict) -> str:
 
 
 def _distill_line(card: dict) -> list[str]:
-    d = card.get("distillation")
-    if not d:
-        return []
+    """The encoder's training after the shape stage, one line per step, oldest first."""
+    steps, d = [], card.get("distillation")
+    while d:
+        steps.insert(0, d)
+        d = d.get("previous")
+    return [_self_fit_text(d) if d.get("self_fit") else _distill_text(d) for d in steps]
+
+
+def _self_fit_text(d: dict) -> str:
+    s, c = d["self_fit"], d["config"]
+    return ("* **Encoder fitted further to its own labels** (`inseggan self-fit` or the loop's "
+            f"`--self-frames`): the model's labels at `{s['settings']}` settings (tau "
+            f"{s['tau']:.2f}) of {c['frames']} of the user's unlabelled training frames (no "
+            "label of the data is read), the label and "
+            f"ownership losses, the last of {d['iterations']} iterations "
+            f"({d['wall_minutes']} min, learning rate cosine to 0)")
+
+
+def _distill_text(d: dict) -> str:
     c, v = d["config"], d["val_miou_no_refinement"]
     before = f"{v['before']:.3f} -> " if v["before"] is not None else ""
     narrow = (f" into a {c['encoder_nf']}-wide encoder pruned from the source's "
@@ -429,10 +455,11 @@ def _distill_line(card: dict) -> list[str]:
     user = (", while reconstructing the user's own unlabelled frames (weight "
             f"{c['lambda_user']:g})" if c.get("lambda_user", 0.0) > 0 else "")
     where = " on those simulated piles" if label and not pose else ""
-    return [f"* **Encoder distilled** (`inseggan distill`){narrow} on " + " and ".join(targets)
+    val = (f"; validation mIoU without refinement{where} {before}{v['best']:.3f}"
+           if v["best"] is not None else "")
+    return (f"* **Encoder distilled** (`inseggan distill`){narrow} on " + " and ".join(targets)
             + f"{user}, best of {c['iterations']} iterations at {d['iterations']} "
-            f"({d['wall_minutes']} min of fine-tuning{schedule}); validation mIoU without "
-            f"refinement{where} {before}{v['best']:.3f}"]
+            f"({d['wall_minutes']} min of fine-tuning{schedule}){val}")
 
 
 def _bag_line(card: dict) -> list[str]:
@@ -585,16 +612,20 @@ def _runs_lines(card: dict) -> list[str]:
     return lines + [""]
 
 
-def _distill_record(state: dict) -> dict | None:
-    """What `inseggan distill` did to the encoder of this checkpoint, if anything."""
+def distill_record(state: dict) -> dict | None:
+    """What `inseggan distill` (or `self-fit`, `loop`) did to the encoder of this checkpoint, if
+    anything, with what was done before it ("previous"); an exported model keeps it as
+    "distill_record"."""
     d = state.get("distill")
     if not d:
-        return None
+        return state.get("distill_record")
     val = [h for h in d["history"] if h["kind"] == "val"]
+    best = d["best"] if math.isfinite(d["best"]) else None  # none without validation frames
     return {"config": d["config"], "iterations": d["iteration"],
             "wall_minutes": round(d["seconds"] / 60, 1),
             "val_miou_no_refinement": {"before": val[0].get("miou") if val else None,
-                                       "best": d["best"]}}
+                                       "best": best},
+            "previous": d.get("previous"), "self_fit": d.get("self_fit")}
 
 
 def _template_text(m: dict) -> str:
