@@ -303,7 +303,7 @@ def cmd_self_fit(args) -> int:
 
     cfg = LoopConfig(self_frames=args.frames, self_iterations=args.iterations,
                      self_settings=args.settings, workers=args.workers, name=args.name,
-                     seed=args.seed)
+                     seed=args.seed, export_settings=args.export_settings)
     t0 = time.perf_counter()
     s = run_self_fit(args.model, _bag_or_data(args), args.out, cfg, progress=not args.quiet)
     print(f"self-fit done in {(time.perf_counter() - t0) / 60:.1f} min ("
@@ -321,7 +321,7 @@ def cmd_loop(args) -> int:
                      lr=args.lr, seed=args.seed, workers=args.workers, name=args.name,
                      user_weight=args.user_weight, head_iterations=args.head_iterations,
                      self_frames=args.self_frames, self_iterations=args.self_iterations,
-                     self_settings=args.self_settings)
+                     self_settings=args.self_settings, export_settings=args.export_settings)
     train_cfg = None
     if args.model is None:
         from .train import get_config
@@ -806,6 +806,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --self-frames: encoder iterations (1500; the last is kept)")
     p.add_argument("--self-settings", default="quality",
                    help="with --self-frames: the settings that label the frames (quality)")
+    p.add_argument("--export-settings", default="realtime",
+                   help="the exported model's own settings, as the node and its card use "
+                        "them (realtime)")
     p.add_argument("--name", default="model", help="the exported model's name")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_loop)
@@ -827,6 +830,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "one's name (quality)")
     p.add_argument("--workers", type=int, default=2, help="labelling processes (2)")
     p.add_argument("--seed", type=int, default=11)
+    p.add_argument("--export-settings", default="realtime",
+                   help="the exported model's own settings, as the node and its card use "
+                        "them (realtime)")
     p.add_argument("--name", default="model", help="the exported model's name")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_self_fit)

@@ -35,7 +35,8 @@ resumes from its last checkpoint; the export writes its folder atomically):
   4. self (only with `self_frames`): the encoder fitted further to the model's own labels, at
      `self_settings`, of the user's training frames (`selffit.py`; no label read) ->
      out/self/last.pt;
-  5. export: out/model, tau and the card from the user's validation and test frames as if they
+  5. export: out/model with the shipped settings (`export_settings`, realtime.yaml), tau and
+     the card from the user's validation and test frames as if they
      had no labels (the test split's labels, where it has them, give the card's mIoU rows); for
      a bag, its frames before and after the held-out cut (labels from `labels_topic` only).
 Writes out/summary.json with the time of each stage.
@@ -76,6 +77,8 @@ class LoopConfig:
     # the model's own labels of them (`selffit`; 0 = no such stage)
     self_iterations: int = 1500
     self_settings: str = "quality"  # the settings those labels are made with
+    export_settings: str = "realtime"  # the shipped model's own settings (what the node and
+    # the card use), over those of the checkpoint
 
     def __post_init__(self):
         if self.self_frames < 0:
@@ -265,10 +268,25 @@ def self_stage(model: Path, data, out: Path, cfg: LoopConfig, progress: bool = T
     return self_fit(model, frames, calib, out, scfg, progress)
 
 
+def _export(finished: Path, data, cfg: LoopConfig, out: Path) -> dict:
+    """Stage 5: the model shipped with `cfg.export_settings` (a training checkpoint carries
+    only the bare defaults: no refinement, one starting point, no smoothing)."""
+    from . import settings
+    from .modelcard import export_from_bag, export_from_dataset
+    from .paths import resolve_config
+    from .segment import Segmenter
+
+    inference = settings.apply(Segmenter.from_checkpoint(finished, device="cpu").inference,
+                               settings.read_params_file(resolve_config(cfg.export_settings)))
+    if isinstance(data, BagFrames):
+        return export_from_bag(finished, data.path, cfg.name, out, data.topic, data.labels_topic,
+                               data.held_out, inference=inference)
+    return export_from_dataset(finished, data, cfg.name, out, inference=inference)
+
+
 def run_self_fit(model, data, out, cfg: LoopConfig, progress: bool = True) -> dict:
     """Stage 4 alone, for a finished model (`inseggan self-fit`): out/last.pt, then exported
     as stage 5 exports, to out/model -> summary (also out/summary.json)."""
-    from .modelcard import export_from_bag, export_from_dataset
 
     from .selffit import check_settings
 
@@ -276,6 +294,7 @@ def run_self_fit(model, data, out, cfg: LoopConfig, progress: bool = True) -> di
         raise ValueError("self_frames 0 invalid; valid: >= 1 (the frames to fit to)")
     file = _model_file(model).resolve()
     check_settings(cfg.self_settings)
+    check_settings(cfg.export_settings)
     if isinstance(data, BagFrames):
         from .paths import resolve_bag
 
@@ -287,10 +306,7 @@ def run_self_fit(model, data, out, cfg: LoopConfig, progress: bool = True) -> di
     finished = self_stage(file, data, out, cfg, progress)
     seconds = {"self": round(time.monotonic() - t0, 1)}
     t0 = time.monotonic()
-    card = (export_from_dataset(finished, data, cfg.name, out / "model")
-            if not isinstance(data, BagFrames) else
-            export_from_bag(finished, data.path, cfg.name, out / "model", data.topic,
-                            data.labels_topic, data.held_out))
+    card = _export(finished, data, cfg, out / "model")
     seconds["export"] = round(time.monotonic() - t0, 1)
     summary = {"model": str(model), "config": asdict(cfg), "seconds": seconds,
                "data": str(data) if not isinstance(data, BagFrames) else data.describe(),
@@ -310,7 +326,6 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
     from . import checkpoint
     from . import data as data_mod
     from .distill import DistillConfig, distill
-    from .modelcard import export_from_bag, export_from_dataset
     from .preprocess import PreprocessConfig
     from .sim.dataset import DatasetSpec, generate, load_meta
     from .sim.scene import SceneConfig
@@ -320,9 +335,10 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
                          "(not both)")
     if model is not None:
         _model_file(model)  # a missing model is named before anything else
-    if cfg.self_frames:
-        from .selffit import check_settings
+    from .selffit import check_settings
 
+    check_settings(cfg.export_settings)
+    if cfg.self_frames:
         check_settings(cfg.self_settings)
     bag = data if isinstance(data, BagFrames) else None
     if bag is None:
@@ -395,9 +411,7 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
         stages.update(1)
 
     t0 = time.monotonic()
-    card = (export_from_dataset(finished, data, cfg.name, out / "model") if bag is None else
-            export_from_bag(finished, bag.path, cfg.name, out / "model", bag.topic,
-                            bag.labels_topic, bag.held_out))
+    card = _export(finished, data, cfg, out / "model")
     seconds["export"] = round(time.monotonic() - t0, 1)
     stages.update(1)
     stages.close()

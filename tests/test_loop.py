@@ -68,6 +68,16 @@ def test_a_tiny_loop_explains_held_out_scenes_of_its_shape_better_than_its_start
     assert after[0] < 0.97 * before[0], msg
     assert after[1] > before[1] - 0.05, msg
     assert np.isfinite(summary["tau"])  # started again, nothing is redone: the test below
+    # run again with --self-frames, the finished stages are kept and only the self-fit is added
+    encoder_time = (out / "encoder" / "last.pt").stat().st_mtime_ns
+    p = run_cli(*args, "--self-frames", "8", "--self-iterations", "10", check=True, timeout=900)
+    again = json.loads((out / "summary.json").read_text())
+    assert set(again["seconds"]) == {"simulate", "encoder", "self", "export"}, again
+    assert (out / "encoder" / "last.pt").stat().st_mtime_ns == encoder_time
+    card = json.loads((out / "model" / "card.json").read_text())
+    assert card["distillation"]["self_fit"]["frames"] == 8  # and the loop's step before it
+    assert card["distillation"]["previous"]["config"]["labels"] == "simulated"
+    assert checkpoint.load(out / "self" / "last.pt")["distill"]["iteration"] == 10
     # without a model the loop's first stage learns the shape from the data set's training
     # frames (here for 2 iterations; from a bag, the test below)
     from inseggan_ros.loop import learn_shape

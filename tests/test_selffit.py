@@ -49,6 +49,7 @@ def test_self_fit_teaches_the_encoder_its_slow_labels_and_the_card_says_so(tmp):
     assert record["iterations"] == 60 and record["config"]["frames"] == 16
     card = json.loads((out / "model" / "card.json").read_text())
     assert card["distillation"]["self_fit"]["frames"] == 16
+    assert card["inference"]["refine_hypotheses"] == 8  # shipped with realtime.yaml's settings
     readme = (out / "model" / "README.md").read_text()
     assert "fitted further to its own labels" in readme and "16 of the user's" in readme
     # the shipped model keeps the account, so fitting it again keeps the first step on the card
