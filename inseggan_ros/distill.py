@@ -234,6 +234,10 @@ def distill(source, train_x: np.ndarray, val: dict | None, out,
 
     state = checkpoint.load(source)
     previous = distill_record(state)
+    card = Path(source).parent / "card.json"
+    if previous is None and Path(source).name == "model.pt" and card.is_file():
+        previous = json.loads(card.read_text()).get("distillation")  # exported before the
+        # model kept its record
     _, G, E = checkpoint.build_models(state, source)
     if cfg.lambda_pose > 0 and not isinstance(G, SphereGenerator):
         raise ValueError(f"{source}: distillation needs a rod template (renderer 'spheres': "
