@@ -17,7 +17,7 @@ CONE = Path(__file__).resolve().parents[1] / "models" / "cone" / "model.pt"
 
 
 def _agreement(model, x, fg, tau, labels) -> float:
-    """mIoU of the model's default-settings (real-time) labels against `labels`."""
+    """The mIoU of the model's default-settings (real-time) labels against `labels`."""
     seg = Segmenter.from_checkpoint(model, device="cpu", tau=tau)
     return float(mean_miou(miou_batch(seg.segment_batch(x, fg)["labels"].numpy(), labels)))
 
