@@ -176,7 +176,8 @@ def test_the_users_own_frames_are_reconstructed_better_with_their_loss(tmp, cyl_
     before = _label_loss(MODEL, labelled)
     after = _label_loss(tmp / "labels_only" / "last.pt", labelled)
     print(f"label loss {before:.4f} -> {after:.4f}")
-    assert after < 0.9 * before, f"label loss {before:.4f} -> {after:.4f}"  # measured 0.84 x
+    # measured 0.90 x (0.84 x before the shipped cylinder was self-fitted: it starts closer now)
+    assert after < 0.95 * before, f"label loss {before:.4f} -> {after:.4f}"
     run_cli(*common, "--out", tmp / "with_user", "--user-data", user, "--user-weight", "2",
             check=True, timeout=600)
     bad = run_cli(*common, "--out", tmp / "bad", "--user-weight", "1", timeout=600)
