@@ -286,8 +286,7 @@ def _export(finished: Path, data, cfg: LoopConfig, out: Path) -> dict:
 
 def run_self_fit(model, data, out, cfg: LoopConfig, progress: bool = True) -> dict:
     """Stage 4 alone, for a finished model (`inseggan self-fit`): out/last.pt, then exported
-    as stage 5 exports, to out/model -> summary (also out/summary.json)."""
-
+    as stage 5 exports, to out/model -> summary (also out/self_fit.json)."""
     from .selffit import check_settings
 
     if not cfg.self_frames:
