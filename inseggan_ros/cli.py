@@ -298,6 +298,11 @@ def _frames_args(p) -> None:
                    help="with --bag: the last fraction of its frames, kept for the card (0.2)")
 
 
+def _stage_minutes(seconds: dict) -> str:
+    """A run summary's stage times, as `loop` and `self-fit` print them."""
+    return ", ".join(f"{k} {v / 60:.1f} min" for k, v in seconds.items())
+
+
 def cmd_self_fit(args) -> int:
     from .loop import LoopConfig, run_self_fit
 
@@ -307,7 +312,7 @@ def cmd_self_fit(args) -> int:
     t0 = time.perf_counter()
     s = run_self_fit(args.model, _bag_or_data(args), args.out, cfg, progress=not args.quiet)
     print(f"self-fit done in {(time.perf_counter() - t0) / 60:.1f} min ("
-          + ", ".join(f"{k} {v / 60:.1f} min" for k, v in s["seconds"].items())
+          + _stage_minutes(s["seconds"])
           + f"); {s['encoder']['pseudo_label_frames']} frames labelled at {args.settings} "
           f"settings, {s['encoder']['iterations']} iterations; checkpoint {args.out}/last.pt; "
           f"model: {args.out}/model (tau {s['tau']:.2f}), card {s['card']}")
@@ -339,7 +344,7 @@ def cmd_loop(args) -> int:
                   train_cfg=train_cfg)
     enc = summary["encoder"]
     print(f"loop done in {(time.perf_counter() - t0) / 60:.1f} min ("
-          + ", ".join(f"{k} {v / 60:.1f} min" for k, v in summary["seconds"].items())
+          + _stage_minutes(summary["seconds"])
           + f"); encoder validation mIoU on the simulated scenes {enc['val'][0]['miou']:.3f} -> "
           f"{enc['best_score']:.3f}; model: {args.out}/model (tau {summary['tau']:.2f}), "
           f"card {summary['card']}")

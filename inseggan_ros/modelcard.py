@@ -147,8 +147,8 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, inference=None,
     }
     previous = Path(out_dir) / "card.json"  # a re-export keeps the other runs on the same split
     if previous.is_file():
-        runs = json.loads(previous.read_text()).get("training_runs")
-        old_data = json.loads(previous.read_text()).get("data", {})
+        old_card = json.loads(previous.read_text())
+        runs, old_data = old_card.get("training_runs"), old_card.get("data", {})
         if runs and old_data.get("root") == card["data"]["root"] \
                 and old_data.get("counts") == card["data"]["counts"]:
             card["training_runs"] = runs
