@@ -15,8 +15,27 @@ set -u
 # DDS traffic stays on this machine, in a domain of this run's own.
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 export ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-$(( $$ % 90 + 5 ))}
-colcon test --base-paths . --packages-select inseggan_ros --return-code-on-test-failure \
-  --event-handlers console_direct+ --pytest-args -ra "$@"
-rc=$?
+# With pytest-xdist (requirements.txt; TEST_JOBS=1 turns it off) the tests that do not start
+# nodes run TEST_JOBS at a time, one test file per process: most of them are small trainings and
+# simulations that leave part of the CPU idle. Then the tests marked `serial` (nodes over real
+# DDS, whose frame delivery and timing are part of what they check) run alone.
+# Extra arguments go to pytest in both runs.
+JOBS=${TEST_JOBS:-2}
+run() {
+  colcon test --base-paths . --packages-select inseggan_ros --return-code-on-test-failure \
+    --event-handlers console_direct+ --pytest-args -ra "$@"
+}
+rm -f build/inseggan_ros/pytest*.xml
+if [ "$JOBS" -gt 1 ] && python -c "import xdist" 2>/dev/null; then
+  # one thread each (OMP_NUM_THREADS, which torch follows): JOBS processes share the cores
+  OMP_NUM_THREADS=${OMP_NUM_THREADS:-1} run -m "not serial" -n "$JOBS" --dist loadfile "$@"
+  rc=$?
+  # colcon test writes build/inseggan_ros/pytest.xml each time: keep the first run's beside it
+  [ -f build/inseggan_ros/pytest.xml ] && mv build/inseggan_ros/pytest.xml build/inseggan_ros/pytest_parallel.xml
+  run -m serial "$@" || rc=1
+else
+  run "$@"
+  rc=$?
+fi
 colcon test-result --test-result-base build/inseggan_ros --verbose || rc=${rc:-1}
 exit $rc

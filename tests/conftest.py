@@ -86,3 +86,15 @@ def python():
 
 def which(name):
     return shutil.which(name)
+
+
+# The test files that train or simulate the most, longest first: collected before the others so
+# that, when pytest-xdist shares the files between processes (scripts/test.sh), none of them
+# starts last and leaves the other process idle.
+LONGEST_FIRST = ("test_loop.py", "test_distill.py", "test_train.py", "test_unlabelled.py",
+                 "test_label_head.py", "test_selffit.py", "test_models.py", "test_template.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: file order kept

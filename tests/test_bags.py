@@ -15,6 +15,8 @@ from test_bin_replay import stop
 from inseggan_ros import bags
 from inseggan_ros.bags import BagError, BagWriter, CameraInfo, read_all
 
+pytestmark = pytest.mark.serial  # nodes over real DDS: run alone (setup.cfg)
+
 
 def _frames(n=3, shape=(30, 40), seed=0):
     rng = np.random.default_rng(seed)

@@ -14,6 +14,8 @@ from inseggan_ros.image_codec import metres_to_depth
 from inseggan_ros.sim.dataset import scene_seed
 from inseggan_ros.sim.scene import BinSimulator, SceneConfig
 
+pytestmark = pytest.mark.serial  # nodes over real DDS: run alone (setup.cfg)
+
 HERE = Path(__file__).parent
 
 

@@ -5,7 +5,11 @@ import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
+import pytest
+
 from inseggan_ros.dds import PROFILE_VARIABLES, large_frames_profile, use_large_frames_profile
+
+pytestmark = pytest.mark.serial  # nodes over real DDS: run alone (setup.cfg)
 
 HERE = Path(__file__).parent
 

@@ -9,6 +9,8 @@ from pathlib import Path
 import pytest
 from conftest import REPO, get_params, installed_executable
 
+pytestmark = pytest.mark.serial  # nodes over real DDS: run alone (setup.cfg)
+
 LAUNCH_FILES = ("segmenter.launch.py", "demo.launch.py", "d435.launch.py")
 
 

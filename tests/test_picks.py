@@ -13,6 +13,8 @@ from conftest import installed_executable
 from inseggan_ros import picks
 from inseggan_ros.picks import PickConfig, compute_picks
 
+pytestmark = pytest.mark.serial  # nodes over real DDS: run alone (setup.cfg)
+
 HERE = Path(__file__).parent
 K = np.array([[400.0, 0, 49.5], [0, 400.0, 39.5], [0, 0, 1]])  # a 100 x 80 image
 

@@ -14,6 +14,8 @@ from inseggan_ros.metrics import mean_miou, miou_batch
 from inseggan_ros.nodes.segmenter import DEFAULT_MODEL
 from test_bin_replay import start_replay, stop
 
+pytestmark = pytest.mark.serial  # nodes over real DDS: run alone (setup.cfg)
+
 HERE = Path(__file__).parent
 
 
