@@ -120,14 +120,19 @@ class BagFrames:
         if not 0 < self.held_out < 1:
             raise ValueError(f"held_out {self.held_out!r} invalid; valid: between 0 and 1")
         object.__setattr__(self, "path", Path(self.path))
+        object.__setattr__(self, "_read", {})  # prep -> the bag's frames: read once a run
 
     def frames(self, prep, limit: int | None = None) -> tuple[dict, dict]:
         """(the frames before the held-out cut, the held-out ones), preprocessed with `prep`
         (`data.load_bag`; labels only from `labels_topic`); each at most `limit`, spread
-        evenly (`selfcheck.split_held_out`, as `modelcard.export_from_bag` takes them)."""
+        evenly (`selfcheck.split_held_out`, as `modelcard.export_from_bag` takes them). The
+        bag is read once per `prep`; each call gets copies."""
         from . import selfcheck
 
-        frames = selfcheck.load_bag_frames(self.path, prep, self.topic, self.labels_topic)
+        if prep not in self._read:
+            self._read[prep] = selfcheck.load_bag_frames(self.path, prep, self.topic,
+                                                         self.labels_topic)
+        frames = self._read[prep]
         before, held = selfcheck.split_held_out(frames, self.held_out, limit)
         if len(before["x"]) < 2:
             raise ValueError(f"{self.path}: {len(frames['x'])} frames are too few; valid: "

@@ -422,10 +422,16 @@ class SphereGenerator(TemplateGenerator):
             cz = cz + (radii - cz).amax(dim=1, keepdim=True).clamp_min(0)
         cx, cy, cz = c[..., 0, None, None], c[..., 1, None, None], cz[..., None, None]
         px, py = self.pixel_grid(size) if grid is None else grid
-        inside = r ** 2 - (px - cx) ** 2 - (py - cy) ** 2  # (M, K, H, W)
         pixel = 2.0 / px.shape[-1]
-        cover = torch.sigmoid(inside / (2 * r * pixel))
-        h = cover * (cz + inside.clamp_min(1e-4).sqrt()).clamp_min(0)
+        if torch.is_grad_enabled():
+            inside = r ** 2 - (px - cx) ** 2 - (py - cy) ** 2  # (M, K, H, W)
+            cover = torch.sigmoid(inside / (2 * r * pixel))
+            h = cover * (cz + inside.clamp_min(1e-4).sqrt()).clamp_min(0)
+        else:  # the same numbers computed in place: at inference the (M, K, H, W) temporaries,
+            # each freshly allocated, cost three times the arithmetic (8 starts x 5 rods)
+            inside = (r ** 2 - (px - cx).square_()) - (py - cy).square_()
+            cover = torch.sigmoid_(inside / (2 * r * pixel))
+            h = inside.clamp_min_(1e-4).sqrt_().add_(cz).clamp_min_(0).mul_(cover)
         h = h.amax(dim=1)  # (M, H, W): the top of the union of spheres
         x = (h * (self.cfg.height_gain / 2)).clamp(0, 1) * 2 - 1
         return x.reshape(B, n, *x.shape[1:])

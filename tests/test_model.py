@@ -508,3 +508,27 @@ def test_a_rod_of_more_spheres_can_be_longer_for_its_thickness():
 
     assert longest(6) == pytest.approx((0.95 * 5 + 2) / 2, rel=1e-3)
     assert longest(6) < 4.6 < longest(12)
+
+
+@pytest.mark.parametrize("floor_contact", [False, True])
+def test_sphere_renders_at_inference_are_those_of_training(floor_contact):
+    """The rod renderer computes in place when no gradient is wanted (inference): the same
+    renders as the autograd path, for poses anywhere, at both sizes the pipeline uses."""
+    from inseggan_ros.model import SphereGenerator
+
+    torch.manual_seed(0)
+    G = SphereGenerator(ModelConfig(renderer="spheres", composite="zbuffer", spheres=6,
+                                    floor_contact=floor_contact, **SMALL))
+    with torch.no_grad():
+        G.radius_shape.normal_(0, 1.0)
+    axis = F.normalize(torch.randn(8, 5, 3), dim=-1)
+    t = torch.randn(8, 5, 3) * 0.4
+    for size in (32, 64):
+        with torch.enable_grad():
+            want = G.render_axes(axis, t, size)
+        assert want.requires_grad  # the autograd path, whose parameters learn
+        with torch.no_grad():
+            got = G.render_axes(axis, t, size)
+        assert got.shape == (8, 5, size, size)
+        torch.testing.assert_close(got, want.detach(), rtol=0, atol=1e-6)
+        assert (want > -1).float().mean() > 0.05, "the rods are drawn"
