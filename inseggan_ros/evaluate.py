@@ -127,7 +127,9 @@ def qualitative_png(path, data: dict, results: dict, frames=None, count: int = 6
 
 
 def write_json(path, obj) -> None:
+    """`obj` as indented JSON at `path`, atomically (a killed run leaves the old file or the
+    new one); what JSON has no type for (paths) as its str()."""
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(obj, indent=2))
+    tmp.write_text(json.dumps(obj, indent=2, default=str))
     os.replace(tmp, path)

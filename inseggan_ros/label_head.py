@@ -22,7 +22,6 @@ rendering + z-buffer; the head only moves pixels between instances the renders p
 """
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import asdict, dataclass
@@ -35,6 +34,7 @@ import torch.nn.functional as F
 from scipy.optimize import linear_sum_assignment
 from tqdm import tqdm
 
+from .evaluate import write_json
 from .symmetry import SYMMETRIES, transform_image
 
 IN_CHANNELS = 4  # input heights, slot k's render, the other renders' maximum, z-buffer mask of k
@@ -273,9 +273,7 @@ def train_head(G, tau: float, train: dict, val: dict | None, out,
                "history": history, "best_val_miou": best if val is not None else None,
                "first_loss": first_loss, "last_loss": loss_avg,
                "train_frames": int(len(T["x"]))}
-    tmp = out / "summary.json.tmp"
-    tmp.write_text(json.dumps(summary, indent=2))
-    tmp.replace(out / "summary.json")
+    write_json(out / "summary.json", summary)
     return summary
 
 

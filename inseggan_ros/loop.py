@@ -53,6 +53,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from tqdm import tqdm
 
+from .evaluate import write_json
+
 if TYPE_CHECKING:
     from .sim.scene import SceneConfig
 
@@ -316,9 +318,7 @@ def run_self_fit(model, data, out, cfg: LoopConfig, progress: bool = True) -> di
                "data": str(data) if not isinstance(data, BagFrames) else data.describe(),
                "encoder": json.loads((out / "summary.json").read_text()),
                "card": str(out / "model" / "card.json"), "tau": card.get("tau")}
-    tmp = out / "self_fit.json.tmp"
-    tmp.write_text(json.dumps(summary, indent=2, default=str))
-    tmp.replace(out / "self_fit.json")
+    write_json(out / "self_fit.json", summary)
     return summary
 
 
@@ -424,7 +424,5 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
                "config": asdict(cfg),
                "seconds": seconds, "encoder": json.loads((encoder / "summary.json").read_text()),
                "card": str(out / "model" / "card.json"), "tau": card.get("tau")}
-    tmp = out / "summary.json.tmp"
-    tmp.write_text(json.dumps(summary, indent=2, default=str))
-    tmp.replace(out / "summary.json")
+    write_json(out / "summary.json", summary)
     return summary
