@@ -36,6 +36,7 @@ import torch
 from tqdm import tqdm
 
 from . import checkpoint, losses
+from .evaluate import write_json
 from .model import Encoder, ModelConfig, SphereGenerator, pose_features
 from .refine import refine_poses, start_poses
 from .symmetry import SYMMETRIES, transform_image, transform_poses
@@ -364,6 +365,6 @@ def distill(source, train_x: np.ndarray, val: dict | None, out,
     summary = {"iterations": it, "seconds": round(before + time.monotonic() - start, 1),
                "best_score": best, "pseudo_label_frames": len(x), "last": stats,
                "val": [h for h in history if h["kind"] == "val"]}
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    write_json(out / "summary.json", summary)
     plot_curves(history, out / "curves.png")
     return summary

@@ -33,6 +33,7 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from . import checkpoint, losses
+from .evaluate import write_json
 from .model import ConvexGenerator, ModelConfig, TemplateGenerator, build
 
 
@@ -453,7 +454,7 @@ def train(cfg: TrainConfig, train_data: dict, val_data: dict | None, out: Path,
     if is_main:
         out.mkdir(parents=True, exist_ok=True)
         (out / "samples").mkdir(exist_ok=True)
-        (out / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
+        write_json(out / "config.json", cfg.to_dict())
     sample_x = None
     if val_data is not None:
         sample_x = torch.from_numpy(val_data["x"][:6]).to(device)
@@ -554,7 +555,7 @@ def train(cfg: TrainConfig, train_data: dict, val_data: dict | None, out: Path,
                "device": device, "world_size": int(os.environ.get("WORLD_SIZE", "1")),
                "weights_sha256_per_rank": checksums, "last": stats}
     if is_main:
-        (out / "summary.json").write_text(json.dumps(summary, indent=2))
+        write_json(out / "summary.json", summary)
         if run.history:
             plot_curves(run.history, out / "curves.png")
     return summary
