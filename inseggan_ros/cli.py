@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -218,6 +219,8 @@ def cmd_train(args) -> int:
     t0 = time.perf_counter()
     summary = train(cfg, train_data, val_data, args.out, prep.to_dict(), info,
                     device=args.device, resume=args.resume, progress=not args.quiet)
+    if int(os.environ.get("RANK", "0")) != 0:  # under torchrun, rank 0 reports for all
+        return 0
     print(f"trained {summary['iterations']} iterations in {summary['seconds'] / 60:.1f} min "
           f"({summary['images_per_s_this_process']:.0f} images/s on {summary['device']}); "
           f"best validation score {summary['best_score']:.4f} at tau {summary['tau']:.2f}; "

@@ -397,19 +397,35 @@ def plot_curves(history: list, path: Path) -> None:
 def train(cfg: TrainConfig, train_data: dict, val_data: dict | None, out: Path,
           prep_cfg: dict, data_info: dict, device: str = "auto", resume: bool = False,
           progress: bool = True) -> dict:
-    """Train until max_iterations or max_minutes; returns the summary (also summary.json)."""
+    """Train until max_iterations or max_minutes; returns the summary (also summary.json).
+
+    Under torchrun (WORLD_SIZE > 1) it joins the process group, or opens one, and destroys the
+    group it opened before returning: a gloo group left to the interpreter's exit may abort the
+    process ("terminate called without an active exception") while its threads still run.
+    """
+    import torch.distributed as dist
+
+    device = checkpoint.pick_device(device)
+    opened = (int(os.environ.get("WORLD_SIZE", "1")) > 1 and dist.is_available()
+              and not dist.is_initialized())
+    if opened:
+        dist.init_process_group("nccl" if device.startswith("cuda") else "gloo")
+    try:
+        return _train(cfg, train_data, val_data, out, prep_cfg, data_info, device, resume,
+                      progress)
+    finally:
+        if opened and dist.is_initialized():
+            dist.destroy_process_group()
+
+
+def _train(cfg, train_data, val_data, out, prep_cfg, data_info, device, resume, progress):
     from torch.utils.data import DataLoader, RandomSampler
 
     from .data import DepthTensorDataset
 
     distributed = int(os.environ.get("WORLD_SIZE", "1")) > 1
     rank = int(os.environ.get("RANK", "0"))
-    device = checkpoint.pick_device(device)
     if distributed:
-        import torch.distributed as dist
-
-        if not dist.is_initialized():
-            dist.init_process_group("nccl" if device.startswith("cuda") else "gloo")
         if device.startswith("cuda"):
             device = f"cuda:{int(os.environ.get('LOCAL_RANK', 0))}"
             torch.cuda.set_device(device)
@@ -549,6 +565,7 @@ def train(cfg: TrainConfig, train_data: dict, val_data: dict | None, out: Path,
 
         checksums = [None] * dist.get_world_size()
         dist.all_gather_object(checksums, weights_checksum(run))
+        dist.barrier()  # no rank leaves (and destroys its group) while another still sends
     summary = {"iterations": run.iteration, "seconds": round(elapsed(), 1),
                "images_per_s_this_process": round(seen / max(time.monotonic() - start, 1e-9), 1),
                "best_score": run.best, "tau": run.tau, "resets": run.resets,
