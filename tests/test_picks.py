@@ -244,3 +244,40 @@ def test_camera_info_is_taken_beside_a_remapped_depth_topic():
         in lines[-1], lines
     assert any("the remap of 'depth' has no effect: the depth topic is "
                "camera/depth/image_rect_raw" in line for line in lines), lines
+
+
+def test_bench_truth_tells_a_moved_pick_point_from_a_wrong_plane():
+    """bench_picks' two normal figures: against the true normal at the true centroid, and at
+    the point the pick names. Every instance cut to 60 % of its width (a segmentation that
+    split it along its length) moves its centroid across a curved side: the first error grows,
+    the second, the fitted plane's own, stays that of the true labels."""
+    from inseggan_ros.bench_picks import frame_errors, scene_truth
+    from inseggan_ros.sim.dataset import scene_seed
+    from inseggan_ros.sim.scene import BinSimulator, SceneConfig
+
+    cfg = SceneConfig()
+    with BinSimulator(cfg) as sim:
+        scene = sim.render(scene_seed(0, "test", 0))
+        truth = scene_truth(sim, scene, scene.depth)
+    depth, K_cam = scene.depth, cfg.camera.K
+    exact = frame_errors(compute_picks(depth, scene.labels, K_cam), scene.labels, truth)
+    assert len(exact["normal"]) >= 2
+    np.testing.assert_allclose(exact["normal_here"], exact["normal"])  # the same points
+    cut = scene.labels.copy()
+    for k in range(1, int(cut.max()) + 1):
+        rows, cols = np.nonzero(cut == k)
+        if len(rows) < 20:
+            continue
+        uv = np.stack([cols, rows], 1).astype(float)
+        uv -= uv.mean(0)
+        minor = np.linalg.eigh(uv.T @ uv)[1][:, 0]  # across the instance
+        side = uv @ minor
+        drop = side < np.percentile(side, 40)
+        cut[rows[drop], cols[drop]] = 0
+    moved = frame_errors(compute_picks(depth, cut, K_cam), cut, truth)
+    print(f"true labels: normal errors {np.round(exact['normal'], 1)}; cut: at the true "
+          f"centroid {np.round(moved['normal'], 1)}, at the point picked "
+          f"{np.round(moved['normal_here'], 1)}")
+    assert len(moved["normal_here"]) >= 2
+    assert max(moved["normal"]) > 2 * max(exact["normal"]) + 5
+    assert max(moved["normal_here"]) < max(exact["normal"]) + 5
