@@ -43,7 +43,9 @@ BAND = 2
 
 @dataclass(frozen=True)
 class PickConfig:
-    normal_radius: float = 0.005  # metres: the patch around the centroid the normal is fitted to
+    # metres: the patch around the centroid the normal is fitted to. Wider takes in a cylinder's
+    # cap rim or a neighbour's edge more often; narrower follows the depth noise (bench_picks)
+    normal_radius: float = 0.004
     free_rise: float = 0.003  # metres: a neighbour higher than this where they meet covers it
     min_pixels: int = 20  # fewer valid pixels: no pick
     normal_window: float = 0.004  # metres: side of the window for per-pixel normals (area)

@@ -261,7 +261,7 @@ class SegmenterNode(Node):
                 "metres: a neighbouring instance higher than this where the two meet lies on an "
                 "instance, which then is not free (picks: free ones first)", read_only=True,
                 float_range=(0.0, 0.1))),
-            "pick_normal_radius": (0.005, d(
+            "pick_normal_radius": (0.004, d(
                 "metres: the patch around a pick's centroid that its normal is fitted to",
                 read_only=True, float_range=(0.0005, 0.1))),
         })
