@@ -12,7 +12,6 @@ Expected errors (bad arguments, a bag that cannot be read, an existing output) p
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -538,7 +537,9 @@ def cmd_bench_sim(args) -> int:
         met = "met" if r["one_core_scenes_per_s"] >= 25 else "NOT met"
         print(f"  target >= 25 scenes/s per core (224x224, 5 objects): {met}")
     if args.json:
-        Path(args.json).write_text(json.dumps(r, indent=2))
+        from .evaluate import write_json
+
+        write_json(args.json, r)  # atomic
     return 0
 
 
