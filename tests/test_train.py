@@ -102,6 +102,7 @@ def test_ddp_two_processes_gloo_identical_weights(tmp, tiny_data):
                         str(out), "--iterations", "6", "--eval-every", "6", *TINY],
                        capture_output=True, text=True, timeout=600, env=env)
     assert p.returncode == 0, p.stderr[-3000:]
+    assert p.stdout.count("trained 6 iterations") == 1, p.stdout  # rank 0 reports for both
     summary = json.loads((out / "summary.json").read_text())
     assert summary["world_size"] == 2 and summary["iterations"] == 6
     sums = summary["weights_sha256_per_rank"]
