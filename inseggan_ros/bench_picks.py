@@ -90,7 +90,7 @@ def cylinder_normal(point_cam, pose, cam, radius: float, height: float):
 def scene_truth(sim, scene, clean_depth: np.ndarray) -> dict:
     """The truth of one rendered scene: per instance (label k + 1 at index k) the surface
     centroid, the normal there (NaN where undefined), the hidden fraction and the mask."""
-    from .picks import compute_picks
+    from .picks import compute_picks, points
 
     cam, spec = sim.cfg.camera, sim.spec
     n = len(scene.poses)
@@ -102,10 +102,13 @@ def scene_truth(sim, scene, clean_depth: np.ndarray) -> dict:
     if spec.name == "cylinder":
         r = float(np.abs(spec.mesh.vertices[:, :2]).max())
         h = float(np.ptp(spec.mesh.vertices[:, 2]))
+        surface = points(clean_depth, cam.K)  # once a scene: normal_at runs for every pick
+        valid = clean_depth > 0
 
         def normal_at(k: int, point) -> np.ndarray | None:
             """The true outward normal of instance k + 1 at its surface point nearest `point`."""
-            nearest = _nearest_surface_point(clean_depth, scene.labels == k + 1, cam.K, point)
+            pts = surface[(scene.labels == k + 1) & valid]
+            nearest = pts[np.argmin(np.linalg.norm(pts - point, axis=1))]
             return cylinder_normal(nearest, scene.poses[k], cam, r, h)
 
         truth["normal_at"] = normal_at
@@ -117,13 +120,6 @@ def scene_truth(sim, scene, clean_depth: np.ndarray) -> dict:
             if got is not None:
                 normal[k] = got
     return truth
-
-
-def _nearest_surface_point(depth, mask, K, target):
-    from .picks import points
-
-    pts = points(depth, K)[mask & (depth > 0)]
-    return pts[np.argmin(np.linalg.norm(pts - target, axis=1))]
 
 
 def match(pred_labels: np.ndarray, true_labels: np.ndarray, n_true: int) -> dict:
