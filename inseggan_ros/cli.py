@@ -321,6 +321,65 @@ def cmd_self_fit(args) -> int:
     return 0
 
 
+def cmd_shape_fit(args) -> int:
+    from . import checkpoint
+    from . import data as data_mod
+    from .loop import BagFrames, _model_file, _same_view
+    from .preprocess import PreprocessConfig
+    from .shapefit import ShapeFitConfig, fit_shape
+
+    cfg = ShapeFitConfig(pieces=args.pieces, walls=args.walls, iterations=args.iterations,
+                         frames=args.frames, eval_every=args.eval_every, seed=args.seed,
+                         thickness=args.thickness)
+    file = _model_file(args.model)
+    frames = _bag_or_data(args)
+    report = None
+    if isinstance(frames, BagFrames):
+        prep = PreprocessConfig.from_dict(checkpoint.load(file)["preprocess_config"])
+        before = frames.frames(prep)[0]["x"]
+        train_x, val_x = before[:cfg.frames], before[cfg.frames:cfg.frames + cfg.val_frames]
+    else:
+        _same_view(file, frames)
+        train_x = data_mod.load_sim_split(frames, "train", limit=cfg.frames,
+                                          progress=not args.quiet)["x"]
+        val_x = data_mod.load_sim_split(frames, "val", limit=cfg.val_frames)["x"]
+        report = _shape_report(file, frames)
+    t0 = time.perf_counter()
+    s = fit_shape(file, train_x, args.out, cfg, val_x=val_x, progress=not args.quiet,
+                  report=report)
+    first, last = s["first"] or {}, s["best"] or s["last"] or {}
+    line = (f"shape fitted in {(time.perf_counter() - t0) / 60:.1f} min, {s['iterations']} "
+            f"iterations on {s['frames']} frames")
+    if "recon_l1" in last:
+        line += (f"; validation reconstruction L1 {first['recon_l1']:.4f} -> best "
+                 f"{last['recon_l1']:.4f} (iteration {last['iteration']}, kept)")
+    if "shape_iou" in last:
+        line += (f"; IoU with the true part {first['shape_iou']:.3f} -> {last['shape_iou']:.3f}, "
+                 f"{' x '.join(f'{v:.1f}' for v in last['dims_mm'])} mm (true "
+                 f"{' x '.join(f'{v:.1f}' for v in last['true_dims_mm'])})")
+    print(line + f"; model {s['model']}")
+    return 0
+
+
+def _shape_report(model_file, data):
+    """For a simulated data set of a library part: the template's fidelity against it (the
+    report `shape-fit` logs; None when the part is not the library's)."""
+    from . import checkpoint, shape
+    from .sim.camera import CameraConfig
+    from .sim.dataset import load_meta
+    from .sim.objects import OBJECTS
+
+    scene = load_meta(data)["scene"]
+    if scene["object"] not in OBJECTS:
+        return None
+    state = checkpoint.load(model_file)
+    scale = shape.metres_per_unit(state["preprocess_config"], CameraConfig(**scene["camera"]),
+                                  float(state["model_config"].get("height_gain", 1.8)))
+    voxel = float(np.ptp(shape.vertices(shape.part_pieces(scene["object"])), axis=0).max()) / 30
+    return lambda G: shape.evaluate_generator(G, scene["object"], scale, voxel=voxel)  # as the
+    # cards measure it (`modelcard.add_shape`)
+
+
 def cmd_loop(args) -> int:
     from .loop import LoopConfig, run
 
@@ -773,6 +832,27 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_distill)
+
+    p = sub.add_parser("shape-fit", help="fit a convex template (a box, a prism) to the "
+                                         "user's unlabelled frames, starting from a rod model")
+    p.add_argument("--model", type=Path, required=True,
+                   help="a rod model: a model folder or training checkpoint")
+    _frames_args(p)
+    p.add_argument("--out", type=Path, required=True,
+                   help="run directory (resumable): best.pt (the model), last.pt, log.jsonl, "
+                        "curves.png")
+    p.add_argument("--pieces", type=int, default=1, help="convex pieces (1)")
+    p.add_argument("--walls", type=int, default=4, help="side planes of each piece (4: a box)")
+    p.add_argument("--iterations", type=int, default=1500, help="(1500)")
+    p.add_argument("--frames", type=int, default=1000,
+                   help="the user's training frames fitted to (1000)")
+    p.add_argument("--eval-every", type=int, default=250, help="(250)")
+    p.add_argument("--thickness", choices=("data", "rod"), default="data",
+                   help="the starting box's height: the frames' flat-lying parts' (data) or the "
+                        "rod's diameter (rod)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_shape_fit)
 
     p = sub.add_parser("loop", help="finish a model on labelled simulated piles of the shape "
                                     "it learned, and ship it with a label-free card")

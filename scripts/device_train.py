@@ -14,6 +14,7 @@ or discriminator state; with --half its weights in float16) so that it can be co
 The loop's encoder stage, too: `pack --with-labels` on the simulated piles of a learned part
 (`inseggan loop`'s sim/ folder), then `distill` from the shape stage's checkpoint with the
 loop's settings (labels, ownership 0.2, cosine learning rate), any number of iterations.
+And `shape-fit` (`inseggan_ros.shapefit`) from a rod model on the packed training frames.
 """
 from __future__ import annotations
 
@@ -113,6 +114,23 @@ def distill(args) -> int:
     return 0
 
 
+def shape_fit(args) -> int:
+    from inseggan_ros.shapefit import ShapeFitConfig, fit_shape
+
+    tr, val, _, _ = unpack(args.packed)
+    cfg = ShapeFitConfig(pieces=args.pieces, walls=args.walls, iterations=args.iterations,
+                         frames=len(tr["x"]), batch_size=args.batch_size,
+                         template_lr=args.template_lr, thickness=args.thickness,
+                         eval_every=args.eval_every, seed=args.seed)
+    t0 = time.perf_counter()
+    s = fit_shape(args.model, tr["x"], args.out, cfg, val_x=val["x"], progress=not args.quiet,
+                  device=args.device)
+    print(f"shape fit {args.out}: {s['iterations']} iterations in "
+          f"{time.perf_counter() - t0:.0f} s, validation L1 {s['first']['recon_l1']:.4f} -> "
+          f"{s['last']['recon_l1']:.4f}", flush=True)
+    return 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     sub = ap.add_subparsers(required=True)
@@ -149,6 +167,21 @@ def main(argv=None) -> int:
     p.add_argument("--device", default="auto")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=distill)
+    p = sub.add_parser("shape-fit")
+    p.add_argument("--packed", type=Path, required=True)
+    p.add_argument("--model", type=Path, required=True, help="a rod model")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--iterations", type=int, default=1500)
+    p.add_argument("--batch-size", type=int, default=32)
+    p.add_argument("--template-lr", type=float, default=3e-3)
+    p.add_argument("--pieces", type=int, default=1)
+    p.add_argument("--walls", type=int, default=4)
+    p.add_argument("--thickness", default="data")
+    p.add_argument("--eval-every", type=int, default=250)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="auto")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=shape_fit)
     args = ap.parse_args(argv)
     return args.func(args)
 
