@@ -85,6 +85,8 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, inference=None,
     # 2. half precision only if it costs nothing measurable
     keep = {k: v for k, v in state.items() if k not in TRAINING_ONLY}
     keep["distill_record"] = distill_record(state)  # the card's account, kept for a re-fit
+    if keep.get("shape_fit"):  # its account, without the optimiser's state
+        keep["shape_fit"] = shape_fit_record(state)
     keep["tau"] = tau
     keep["inference"] = seg.inference.to_dict()
     precision, val_half = "float32", None
@@ -140,6 +142,7 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, inference=None,
         "encoder_precision": seg.resolve_precision(inference.encoder_precision),
         "also": {k: v.to_dict() for k, v in (also or {}).items()},
         "distillation": distill_record(state),
+        "shape_fit": shape_fit_record(state),
         "precision": precision,
         "sample_bag": sample_bag, "sample_bag_scores": bag_scores,
         "val_miou": {"float32": val_full, "float16": val_half},
@@ -479,7 +482,15 @@ def _shape_lines(card: dict) -> list[str]:
         return []
     dims = " x ".join(f"{v:.1f}" for v in f["dims_template_mm"])
     true = " x ".join(f"{v:.1f}" for v in f["dims_true_mm"])
-    return ["## Learned shape", "",
+    fit = card.get("shape_fit")
+    how = ([f"The template is {fit['config']['pieces']} convex piece(s) fitted by "
+            f"reconstruction of the unlabelled training frames (`inseggan shape-fit`, "
+            f"{fit['iterations']} iterations from the rod model `{fit['source']}`; kept: "
+            f"iteration {fit['kept']}, "
+            + ("the best held-out reconstruction" if fit["kept"] == fit["best"] else
+               f"the held-out reconstruction was best at iteration {fit['best']}") + ").",
+            ""] if fit else [])
+    return ["## Learned shape", "", *how,
             f"The learned template against the simulator's true {f['object']} "
             f"(`inseggan card-shape`): volumetric IoU {f['iou']:.3f} after the best alignment "
             f"({f['voxel_mm']:.1f} mm voxels){' (the mirror image)' if f['mirrored'] else ''}; "
@@ -626,6 +637,23 @@ def distill_record(state: dict) -> dict | None:
             "val_miou_no_refinement": {"before": val[0].get("miou") if val else None,
                                        "best": best},
             "previous": d.get("previous"), "self_fit": d.get("self_fit")}
+
+
+def shape_fit_record(state: dict) -> dict | None:
+    """How `inseggan shape-fit` made this checkpoint's convex template from a rod model, if it
+    did: its config, the rod model, the iterations, the validation reconstruction error at
+    each evaluation and the one kept (the lowest)."""
+    d = state.get("shape_fit")
+    if not d:
+        return None
+    if "optimizer" not in d:  # already the record
+        return d
+    val = [(h["iteration"], h["recon_l1"]) for h in d["history"]
+           if h["kind"] == "val" and "recon_l1" in h]
+    return {"config": d["config"], "source": d["source"],
+            "iterations": d["config"]["iterations"], "wall_minutes": round(d["seconds"] / 60, 1),
+            "val_recon_l1": val, "kept": d["iteration"],  # this checkpoint's own
+            "best": min(val, key=lambda v: v[1])[0] if val else None}
 
 
 def _template_text(m: dict) -> str:

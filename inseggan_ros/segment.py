@@ -171,6 +171,18 @@ class Segmenter:
         self.inference = inference
         self._encoders = {}  # precision -> the encoder that computes in it
 
+    def check(self, cfg: InferenceConfig) -> None:
+        """Raises ValueError, naming the setting and what is valid, if this model cannot run
+        with `cfg`: test-time refinement moves a rod's axis (or a learned renderer's codes),
+        and a convex template has no pose fit (one tried, Adam on its six pose numbers,
+        lowered the mIoU: docs/experiments.md, 2026-11-26)."""
+        if cfg.refine_steps > 0 and self.G.cfg.renderer == "convex":
+            raise ValueError(f"refine_steps {cfg.refine_steps}: this model's template is "
+                             "convex pieces, which have no test-time pose fit; valid: 0 (its "
+                             "starting points and smoothing still apply)")
+        if cfg.label_head == "on" and self.label_head is None:
+            raise ValueError("label_head on: this model has no label head; valid: off")
+
     def encoder_changed(self) -> None:
         """Call after changing E's weights: its copies in other precisions are made anew."""
         self._encoders.clear()

@@ -117,3 +117,18 @@ def test_a_killed_fit_resumes_where_it_stopped_and_ends_as_an_unbroken_one(tmp):
     for key in ("generator", "encoder"):
         for name, v in a[key].items():
             torch.testing.assert_close(v, b[key][name], rtol=0, atol=0)
+
+
+def test_a_convex_model_refuses_refinement_by_name_and_runs_without():
+    """The shipped wooden_block model is a convex template (shape-fit, then the loop): a pose
+    fit is the rod's, so refine_steps > 0 is refused with what is valid (the segmenter node
+    rejects the parameter with this message), and its own settings run."""
+    from dataclasses import replace
+
+    from conftest import REPO
+
+    seg = Segmenter.from_checkpoint(REPO / "models" / "wooden_block" / "model.pt", device="cpu")
+    assert isinstance(seg.G, ConvexGenerator) and seg.inference.refine_steps == 0
+    seg.check(seg.inference)
+    with pytest.raises(ValueError, match="refine_steps 5: .*convex.*valid: 0"):
+        seg.check(replace(seg.inference, refine_steps=5))

@@ -329,8 +329,7 @@ class SegmenterNode(Node):
         """Validate a full parameter set and make it current (raises ConfigError)."""
         new = {**self.p, **values}
         inference = settings.apply(self.model.inference, new)  # ValueError naming a bad one
-        if inference.label_head == "on" and self.model.label_head is None:
-            raise ConfigError("label_head on: this model has no label head; valid: off")
+        self.model.check(inference)  # and one this model cannot run with
         roi = _parse_roi(new["roi"])
         polygon = _parse_polygon(new["bin_polygon"])
         floor = float(new["floor_depth"])
