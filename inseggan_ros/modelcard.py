@@ -564,7 +564,8 @@ def add_training_run(model_dir, checkpoint_path, eval_results, label: str,
     t = state["train_config"]
     m = res["methods"]["inseggan"]
     record = {"label": label, "checkpoint": str(checkpoint_path), "hardware": hardware,
-              "nf": t["model"]["nf"], "renderer": t["model"]["renderer"],
+              "nf": t["model"]["nf"],  # what renders: a shape fit makes a rod model convex
+              "renderer": state["model_config"].get("renderer", t["model"]["renderer"]),
               "composite": t["model"]["composite"], "batch_size": t["batch_size"],
               "iterations": int(state["iteration"]),
               "wall_minutes": round(float(state["elapsed_seconds"]) / 60, 1),
