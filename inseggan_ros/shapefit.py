@@ -113,8 +113,11 @@ def convex_from_rod(state: dict, cfg: ShapeFitConfig, source="checkpoint", x=Non
     G = ConvexGenerator(ModelConfig.from_dict(mcfg))
     G.pose.load_state_dict(rod.pose.state_dict())
     G.init_box(rod_box(rod, x if cfg.thickness == "data" else None))
+    # without the rod encoder's distillation record: the encoder's next fit (the loop's) is
+    # the one this model's card accounts for
     new = {k: v for k, v in state.items()
-           if k not in ("format", "distill_record", "discriminator", "optimizers", "rng")}
+           if k not in ("format", "distill", "distill_record", "discriminator", "optimizers",
+                        "rng")}
     new["model_config"] = G.cfg.to_dict()
     new["precision"] = "float32"
     return new, G, E
