@@ -16,8 +16,10 @@ image). So the rod model is the starting point, and the shape is fitted afterwar
 What the depth shows pulls the shape to the part: a box too long covers floor pixels, one too
 tall stands above the surface it should explain.
 
-    inseggan shape-fit --model models/wooden_block --data data/wooden_block --out runs/block_shape
-    inseggan loop --model runs/block_shape/best.pt --data data/wooden_block --out runs/block_loop
+    inseggan shape-fit --model runs/my_block/best.pt --data data/my_block --out runs/my_block_shape
+    inseggan loop --model runs/my_block_shape/best.pt --data data/my_block --out runs/my_block_loop
+
+(`--model`: a rod model, `inseggan train`'s; the shipped wooden_block is already the result.)
 
 Writes out/best.pt, the model: a training checkpoint with the convex template, which the loop,
 `export` and `eval` take, at the evaluation where the validation frames were reconstructed
