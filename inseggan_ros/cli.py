@@ -375,9 +375,8 @@ def _shape_report(model_file, data):
     state = checkpoint.load(model_file)
     scale = shape.metres_per_unit(state["preprocess_config"], CameraConfig(**scene["camera"]),
                                   float(state["model_config"].get("height_gain", 1.8)))
-    voxel = float(np.ptp(shape.vertices(shape.part_pieces(scene["object"])), axis=0).max()) / 30
-    return lambda G: shape.evaluate_generator(G, scene["object"], scale, voxel=voxel)  # as the
-    # cards measure it (`modelcard.add_shape`)
+    voxel = shape.part_voxel(scene["object"])  # as the cards measure it (`modelcard.add_shape`)
+    return lambda G: shape.evaluate_generator(G, scene["object"], scale, voxel=voxel)
 
 
 def cmd_loop(args) -> int:

@@ -85,8 +85,9 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, inference=None,
     # 2. half precision only if it costs nothing measurable
     keep = {k: v for k, v in state.items() if k not in TRAINING_ONLY}
     keep["distill_record"] = distill_record(state)  # the card's account, kept for a re-fit
-    if keep.get("shape_fit"):  # its account, without the optimiser's state
-        keep["shape_fit"] = shape_fit_record(state)
+    fit = shape_fit_record(state)
+    if fit:  # its account, without the optimiser's state
+        keep["shape_fit"] = fit
     keep["tau"] = tau
     keep["inference"] = seg.inference.to_dict()
     precision, val_half = "float32", None
@@ -142,7 +143,7 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, inference=None,
         "encoder_precision": seg.resolve_precision(inference.encoder_precision),
         "also": {k: v.to_dict() for k, v in (also or {}).items()},
         "distillation": distill_record(state),
-        "shape_fit": shape_fit_record(state),
+        "shape_fit": fit,
         "precision": precision,
         "sample_bag": sample_bag, "sample_bag_scores": bag_scores,
         "val_miou": {"float32": val_full, "float16": val_half},
@@ -524,7 +525,7 @@ def add_shape(model_dir, object_name: str | None = None, voxels: int = 30) -> di
     G = ckpt.build_models(state, model_dir / "model.pt")[1]
     scale = shape.metres_per_unit(state["preprocess_config"], CameraConfig(**card["camera"]),
                                   state["model_config"]["height_gain"])
-    voxel = float(np.ptp(shape.vertices(shape.part_pieces(name)), axis=0).max()) / voxels
+    voxel = shape.part_voxel(name, voxels)
 
     def write(tmp: Path) -> None:
         for f in model_dir.iterdir():

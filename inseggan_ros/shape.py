@@ -74,6 +74,12 @@ def part_pieces(name: str) -> Pieces:
     return out
 
 
+def part_voxel(name: str, voxels: int = 30) -> float:
+    """The voxel (metres) that puts `voxels` of them along part `name`'s largest extent: the
+    resolution the cards measure fidelity at."""
+    return float(np.ptp(vertices(part_pieces(name)), axis=0).max()) / voxels
+
+
 def scaled(pieces: Pieces, scale) -> Pieces:
     """Pieces stretched by `scale` (3,) along x, y, z (template units -> metres)."""
     s = np.asarray(scale, float)
