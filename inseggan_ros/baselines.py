@@ -49,12 +49,12 @@ from scipy import ndimage
 from scipy.sparse import coo_matrix, csr_matrix
 from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 from scipy.spatial.distance import cdist
-from skimage.segmentation import felzenszwalb as _skimage_felzenszwalb
 from sklearn.cluster import KMeans, spectral_clustering
 from sklearn.feature_extraction.image import img_to_graph
 from threadpoolctl import ThreadpoolController
 
 from .preprocess import fill_labels_nearest
+from .superpixels import depth_superpixels
 
 
 # --------------------------------------------------------------------------- shared helpers
@@ -306,11 +306,7 @@ def felzenszwalb(heights: np.ndarray, fg: np.ndarray, n: int, seed: int = 0) -> 
     trivial = _trivial(fg, n)
     if trivial is not None:
         return trivial
-    h = heights[fg]
-    span = h.max() - h.min()
-    image = np.full(fg.shape, -1.0)
-    image[fg] = (h - h.min()) / span if span > 0 else 0.0
-    segments = _skimage_felzenszwalb(image, scale=200, sigma=0.3, min_size=20, channel_axis=None)
+    segments = depth_superpixels(heights, fg, scale=200)
 
     ids, sizes = np.unique(segments[fg], return_counts=True)
     keep = ids[np.argsort(-sizes, kind="stable")[:n]]

@@ -484,6 +484,23 @@ def cmd_card_run(args) -> int:
     return 0
 
 
+def cmd_card_settings(args) -> int:
+    from .modelcard import apply_settings
+    from .segment import InferenceConfig, Segmenter
+
+    t0 = time.perf_counter()
+    seg = Segmenter.from_checkpoint(Path(args.model) / "model.pt", device="cpu")
+    inference = settings.resolve(seg.inference, args)
+    also = {Path(f).stem: settings.apply(InferenceConfig(), settings.read_params_file(f))
+            for f in args.also_profile or []}
+    card = apply_settings(args.model, args.data, inference, also=also)
+    t = card["test"]
+    print(f"{args.model}: now ships {card['inference']}; test mIoU "
+          + ", ".join(f"{m} {t['methods'][m]['miou_all']:.3f}" for m in t["methods"])
+          + f" ({time.perf_counter() - t0:.0f} s); model, card and README written")
+    return 0
+
+
 def cmd_card_shape(args) -> int:
     from .modelcard import add_shape
 
@@ -683,6 +700,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--voxels", type=int, default=30,
                    help="voxels along the part's largest extent (30)")
     p.set_defaults(func=cmd_card_shape)
+
+    p = sub.add_parser("card-settings", help="ship a model with other test-time settings: "
+                                             "stored in its model.pt, its card measured anew")
+    p.add_argument("model", type=Path, help="a model folder (models/<name>)")
+    p.add_argument("--data", type=Path, required=True,
+                   help="the card's data set (its val and test splits are read)")
+    p.add_argument("--also-profile", action="append", type=Path, metavar="FILE",
+                   help="other settings measured on the test split too (repeatable)")
+    settings.add_flags(p, "(default: the model's own)")
+    p.set_defaults(func=cmd_card_settings)
 
     p = sub.add_parser("card-run", help="record another training run of the part (another "
                                         "config, a GPU) on a model card, with its test scores")

@@ -167,6 +167,69 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, inference=None,
     return card
 
 
+def apply_settings(model_dir, data_root, inference, also: dict | None = None) -> dict:
+    """Ship a model with other test-time settings: models/<name>/model.pt stores `inference`
+    (an InferenceConfig; weights and tau unchanged), and the card's settings, test table
+    (every method again on the card's test split of `data_root`), validation mIoU, sample-bag
+    scores and `also` rows are measured anew with it. The rest of the card (shape, training
+    runs, distillation) is kept. tau stays: it is calibrated on the z-buffer's labels, before
+    any step that `inference` can add after them."""
+    import torch
+
+    from . import checkpoint as ckpt
+    from . import data as data_mod
+    from . import evaluate
+    from .segment import Segmenter
+
+    torch.set_num_threads(1)  # as export measures
+    model_dir = Path(model_dir)
+    card = json.loads((model_dir / "card.json").read_text())
+    meta = json.loads((Path(data_root) / "meta.json").read_text())
+    if meta.get("seed") != card["data"]["seed"] or meta["scene"]["object"] != card["object"]:
+        raise ValueError(f"{data_root}: seed {meta.get('seed')}, {meta['scene']['object']}; "
+                         f"valid: the card's data set (seed {card['data']['seed']}, "
+                         f"{card['object']}), whose test split the card reports")
+    state = ckpt.load(model_dir / "model.pt")
+    seg = Segmenter.from_checkpoint(model_dir / "model.pt", device="cpu")
+    seg.check(inference)
+    seg.inference = inference
+    val = data_mod.load_sim_split(data_root, "val", seg.prep_cfg)
+    test = data_mod.load_sim_split(data_root, "test", seg.prep_cfg)
+    results = evaluate.run_methods(test, seg.model_cfg.n_instances, seg, progress=True)
+    extras = {}
+    for other_name, other in (also or {}).items():
+        seg.check(other)
+        seg.inference = other
+        extras[f"inseggan_{other_name}"] = evaluate.run_methods(
+            test, seg.model_cfg.n_instances, seg, methods=[], progress=False)["inseggan"]
+        seg.inference = inference
+    results = {"inseggan": results.pop("inseggan"), **extras, **results}
+    card.update({
+        "refine_steps": inference.refine_steps, "hypotheses": inference.refine_hypotheses,
+        "smooth_iters": inference.smooth.iters, "keep": inference.refine_keep,
+        "full_res_smooth_iters": inference.smooth.full_res_active,
+        "inference": inference.to_dict(),
+        "encoder_precision": seg.resolve_precision(inference.encoder_precision),
+        "also": {k: v.to_dict() for k, v in (also or {}).items()},
+        "val_miou": {"float32": None, "float16": None, card["precision"]: _val_miou(seg, val)},
+        "test": evaluate.summarise(results, len(test["x"]))})
+    if card.get("sample_bag"):
+        card["sample_bag_scores"] = sample_bag_scores(seg, card["sample_bag"])
+    state["inference"] = inference.to_dict()
+
+    def write(tmp: Path) -> None:
+        for f in model_dir.iterdir():  # the shape drawing and anything else the folder holds
+            if f.is_file():
+                shutil.copy2(f, tmp / f.name)
+        ckpt.save(tmp / "model.pt", state)
+        evaluate.qualitative_png(tmp / "qualitative.png", test, results, count=4)
+        (tmp / "card.json").write_text(json.dumps(card, indent=2))
+        (tmp / "README.md").write_text(card_markdown(card))
+
+    write_folder(model_dir, write)
+    return card
+
+
 def write_folder(out_dir, write) -> Path:
     """`write(tmp)` fills a temporary folder beside `out_dir`, which then replaces `out_dir`:
     a failed or interrupted export leaves the previous folder (or none) in place."""
@@ -419,8 +482,10 @@ def _settings_text(d: dict) -> str:
     precision = ("" if cfg.encoder_precision == "float32"
                  else f", encoder in {cfg.encoder_precision}")
     head = ", labels from the label head" if cfg.label_head == "on" else ""
+    vote = (f", then voted within depth superpixels (scale {cfg.superpixel_scale})"
+            if cfg.superpixel_scale else "")
     return (f"{start}{head}, {smooth.iters} smoothing iterations + {smooth.full_res_active} at "
-            f"full resolution{precision}")
+            f"full resolution{vote}{precision}")
 
 
 def _distill_line(card: dict) -> list[str]:

@@ -29,6 +29,7 @@ from .preprocess import (PreprocessConfig, extend_labels, fill_labels_nearest, l
 from .refine import refine, refine_poses, start_poses
 from .settings import InferenceConfig
 from .smoothing import smooth_full, smooth_labels
+from .superpixels import vote_labels
 
 TAU_GRID = tuple(np.round(np.linspace(-0.95, 0.5, 30), 3))
 
@@ -247,6 +248,7 @@ class Segmenter:
                 raise ValueError("label_head on: this model has no label head; valid: off")
             labels = head_labels(self.label_head, x, out["renders"], labels, fg_t)
         labels = smooth_labels(labels, x, out["renders"].shape[1], cfg.smooth)
+        labels = vote_labels(labels, x, out["renders"].shape[1], cfg.superpixel_scale)
         out["labels"] = labels
         out["scores"] = instance_scores(out["renders"], labels, tau)
         return out

@@ -83,6 +83,10 @@ class InferenceConfig:
     encoder_precision: str = field(default="float32", metadata=_doc(
         "the encoder's arithmetic: float32, bfloat16, or auto (bfloat16 where the CPU or GPU "
         "computes it natively, else float32)", choices=PRECISIONS))
+    superpixel_scale: int = field(default=0, metadata=_doc(
+        "the labels voted within depth superpixels (superpixels.py): Felzenszwalb's graph "
+        "segmentation of the 64 x 64 heights at this scale (smaller: finer superpixels), each "
+        "superpixel given its most frequent label (0 = off)", 0, 10000))
     label_head: str = field(default="off", metadata=_doc(
         "the labels from the model's label head (on: each pixel moved to the instance the head "
         "scores highest, given the input and the renders; models without a head: off) or "
@@ -93,6 +97,7 @@ class InferenceConfig:
                 ("refine_steps", self.refine_steps >= 0, ">= 0"),
                 ("refine_hypotheses", self.refine_hypotheses >= 1, ">= 1"),
                 ("refine_keep", self.refine_keep >= 0, ">= 0 (0 = all starting points)"),
+                ("superpixel_scale", self.superpixel_scale >= 0, ">= 0 (0 = off)"),
                 ("encoder_precision", self.encoder_precision in PRECISIONS,
                  ", ".join(PRECISIONS)),
                 ("label_head", self.label_head in LABEL_HEAD, ", ".join(LABEL_HEAD))):

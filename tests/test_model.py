@@ -357,7 +357,8 @@ def test_inference_config_validates_and_reads_old_checkpoints():
     assert apply(cfg, {"smooth_iters": 5}).smooth == SmoothConfig(iters=5, full_res_iters=0)
     for bad, match in (({"refine_steps": -1}, "refine_steps -1 invalid"),
                        ({"refine_hypotheses": 0}, "refine_hypotheses 0 invalid; valid: >= 1"),
-                       ({"refine_keep": -2}, "refine_keep -2 invalid")):
+                       ({"refine_keep": -2}, "refine_keep -2 invalid"),
+                       ({"superpixel_scale": -1}, "superpixel_scale -1 invalid; valid: >= 0")):
         with pytest.raises(ValueError, match=match):
             InferenceConfig(**bad)
     with pytest.raises(ValueError, match="smooth_full_res_iters"):
@@ -381,7 +382,8 @@ def test_settings_have_one_name_as_field_parameter_and_flag():
 
     names = [s.name for s in settings.exposed()]
     assert names == ["refine_steps", "refine_hypotheses", "refine_keep", "smooth_iters",
-                     "smooth_full_res_iters", "encoder_precision", "label_head"]
+                     "smooth_full_res_iters", "encoder_precision", "superpixel_scale",
+                     "label_head"]
     parser = argparse.ArgumentParser()
     settings.add_flags(parser, "(default: the model's)")
     args = parser.parse_args(["--refine-hypotheses", "8", "--smooth-full-res-iters", "0",

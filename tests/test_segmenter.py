@@ -227,6 +227,8 @@ def test_parameter_changes_are_validated_at_run_time():
         ("model_path", "'other.pt'", "rejected"),  # read-only
         ("smooth_iters", "5", "ok"),
         ("smooth_iters", "-1", "rejected"),  # outside 0..200
+        ("superpixel_scale", "50", "ok"),
+        ("superpixel_scale", "-1", "rejected"),  # outside 0..10000
         ("rim_band", "0.0", "ok"),
         ("rim_band", "1.5", "rejected"),  # outside 0..1
         ("rim_step", "0.0", "rejected"),  # outside 0.0001..0.1

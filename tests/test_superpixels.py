@@ -1,0 +1,81 @@
+"""The model's labels voted within depth superpixels (`superpixels.py`, `superpixel_scale`)."""
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+from conftest import BAGS, REPO
+
+from inseggan_ros import data, evaluate
+from inseggan_ros.metrics import mean_miou, miou_batch
+from inseggan_ros.segment import Segmenter
+from inseggan_ros.superpixels import depth_superpixels, vote_frame, vote_labels
+
+
+def two_blocks():
+    """Heights of two blocks that touch (column 30), at different heights, on a 64 x 64 floor;
+    their true labels."""
+    h = np.zeros((64, 64))
+    h[10:50, 10:30], h[10:50, 30:54] = 0.3, 0.6
+    truth = np.zeros((64, 64), np.uint8)
+    truth[10:50, 10:30], truth[10:50, 30:54] = 1, 2
+    return h, truth
+
+
+def test_votes_move_a_misplaced_boundary_onto_the_height_edge():
+    h, truth = two_blocks()
+    shifted = truth.copy()  # a render a few pixels off: the boundary at column 27
+    shifted[10:50, 27:30] = 2
+    voted = vote_frame(shifted, h, 2, 50)
+    # 120 pixels wrong before; after, at most the one-pixel strip along the edge, which the
+    # superpixels' slight blur makes a superpixel of its own (its votes are the render's)
+    assert (shifted != truth).sum() == 120 and (voted != truth).sum() <= 40
+    assert (voted[10:50, 10:29] == 1).all() and (voted[10:50, 30:54] == 2).all()
+    assert (voted[truth == 0] == 0).all(), "background stays background"
+    np.testing.assert_array_equal(vote_frame(shifted, h, 2, 0), shifted)  # scale 0: off
+    empty = np.zeros((64, 64), np.uint8)
+    np.testing.assert_array_equal(vote_frame(empty, h, 2, 50), empty)
+
+
+def test_every_superpixel_takes_one_label_and_every_part_pixel_keeps_one():
+    rng = np.random.default_rng(0)
+    h, truth = two_blocks()
+    h = h + rng.normal(0, 0.01, h.shape) * (truth > 0)
+    noisy = np.where(truth > 0, rng.integers(1, 4, truth.shape), 0).astype(np.uint8)
+    voted = vote_frame(noisy, h, 3, 50)
+    seg = depth_superpixels(h, noisy > 0, scale=50, sigma=0.3, min_size=20)
+    assert ((voted > 0) == (noisy > 0)).all()
+    for s in np.unique(seg[noisy > 0]):
+        assert len(np.unique(voted[(seg == s) & (noisy > 0)])) == 1
+        counts = np.bincount(noisy[(seg == s) & (noisy > 0)], minlength=4)
+        assert counts[voted[(seg == s) & (noisy > 0)][0]] == counts.max()  # the most frequent
+
+
+@pytest.fixture(scope="module")
+def cylinder_bag():
+    torch.set_num_threads(1)
+    seg = Segmenter.from_checkpoint(REPO / "models" / "cylinder" / "model.pt", device="cpu")
+    return seg, data.load_bag(BAGS / "cylinder_sim", seg.prep_cfg)
+
+
+def test_the_segmenter_votes_its_labels_after_smoothing(cylinder_bag):
+    seg, frames = cylinder_bag
+    x = frames["x"][:4]
+    plain = replace(seg.inference, superpixel_scale=0)
+    voted = seg.segment_batch(x, settings=replace(plain, superpixel_scale=50))["labels"]
+    before = seg.segment_batch(x, settings=plain)["labels"]
+    expect = vote_labels(before, torch.as_tensor(x), seg.model_cfg.n_instances, 50)
+    torch.testing.assert_close(voted, expect)
+    assert (voted != before).any()
+
+
+def test_voting_raises_the_mIoU_on_the_cylinder_sample_bag(cylinder_bag):
+    """The same frames, the same run, with and without the vote (measured where it was
+    made: 0.863 -> 0.900 on the 16 frames)."""
+    seg, frames = cylinder_bag
+    scores = {}
+    for scale in (0, 50):
+        seg.inference = replace(seg.inference, superpixel_scale=scale)
+        r = evaluate.run_methods(frames, seg.model_cfg.n_instances, seg, [], progress=False)
+        scores[scale] = mean_miou(miou_batch(r["inseggan"]["labels"], frames["labels"]))
+    assert scores[50] > scores[0] + 0.01, scores
