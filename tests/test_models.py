@@ -223,3 +223,38 @@ def test_quality_settings_segment_the_default_models_bag_better_than_kmeans():
     full = full_resolution_scores(seg, BAGS / card["sample_bag"])
     print(f"quality settings at full resolution: {full}")
     assert full["inseggan"] > full["kmeans"], full
+
+
+def test_card_settings_ships_other_settings_and_measures_the_card_anew(tmp):
+    """`inseggan card-settings` on a copy of a shipped model: the model stores the new settings
+    with its weights and tau unchanged, the card's test table is measured again on the card's
+    test split (here a small one of the same seed) with them, README.md is that card, the shape
+    drawing and training runs stay; a data set of another seed is refused by name."""
+    import shutil
+
+    import torch
+
+    folder = shutil.copytree(REPO / "models" / "cone", tmp / "cone")
+    before = checkpoint.load(folder / "model.pt")
+    old_card = json.loads((folder / "card.json").read_text())
+    for seed, out in ((1, tmp / "cone_data"), (2, tmp / "other")):
+        run_cli("simulate", "--object", "cone", "--count", "8", "--split", "0,1,1", "--seed",
+                seed, "--workers", "1", "--quiet", "--out", out, check=True)
+    run_cli("card-settings", folder, "--data", tmp / "cone_data", "--profile", "realtime",
+            "--superpixel-scale", "0", "--smooth-iters", "3", check=True, timeout=600)
+    state = checkpoint.load(folder / "model.pt")
+    assert state["inference"]["superpixel_scale"] == 0
+    assert state["inference"]["smooth"]["iters"] == 3 and state["tau"] == before["tau"]
+    for key in ("generator", "encoder"):
+        for name, value in before[key].items():
+            assert torch.equal(state[key][name], value), name
+    card = json.loads((folder / "card.json").read_text())
+    assert card["inference"] == state["inference"] and card["smooth_iters"] == 3
+    assert card["test"]["frames"] == 4 and card["also"] == {}
+    assert set(card["test"]["methods"]) == {"inseggan", "kmeans", "spectral", "grabcut_kmeans",
+                                            "felzenszwalb"}
+    assert card["shape"] == old_card["shape"] and (folder / "shape.png").is_file()
+    assert card.get("training_runs") == old_card.get("training_runs")
+    assert (folder / "README.md").read_text() == card_markdown(card)
+    p = run_cli("card-settings", folder, "--data", tmp / "other", "--profile", "realtime")
+    assert p.returncode == 2 and "valid: the card's data set (seed 1, cone)" in p.stderr, p.stderr
