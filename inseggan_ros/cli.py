@@ -484,15 +484,22 @@ def cmd_card_run(args) -> int:
     return 0
 
 
+def _also_profiles(args) -> dict:
+    """{file stem: InferenceConfig} of each --also-profile FILE."""
+    from .segment import InferenceConfig
+
+    return {Path(f).stem: settings.apply(InferenceConfig(), settings.read_params_file(f))
+            for f in args.also_profile or []}
+
+
 def cmd_card_settings(args) -> int:
     from .modelcard import apply_settings
-    from .segment import InferenceConfig, Segmenter
+    from .segment import Segmenter
 
     t0 = time.perf_counter()
     seg = Segmenter.from_checkpoint(Path(args.model) / "model.pt", device="cpu")
     inference = settings.resolve(seg.inference, args)
-    also = {Path(f).stem: settings.apply(InferenceConfig(), settings.read_params_file(f))
-            for f in args.also_profile or []}
+    also = _also_profiles(args)
     card = apply_settings(args.model, args.data, inference, also=also)
     t = card["test"]
     print(f"{args.model}: now ships {card['inference']}; test mIoU "
@@ -523,8 +530,7 @@ def cmd_export(args) -> int:
         if getattr(args, flag):
             raise ValueError(f"--{flag.replace('_', '-')} goes with --bag, not --data")
     inference = settings.resolve(InferenceConfig(), args)
-    also = {Path(f).stem: settings.apply(InferenceConfig(), settings.read_params_file(f))
-            for f in args.also_profile or []}
+    also = _also_profiles(args)
     card = export_model(args.checkpoint, args.data, args.name,
                         args.out or Path("models") / args.name,
                         inference=inference, half=not args.no_half, frames=args.frames,

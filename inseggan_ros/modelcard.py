@@ -111,14 +111,7 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, inference=None,
 
     # 3. the quality table on the test split (and, for reference, InSeGAN with more test-time
     # refinement than it ships with: better labels, slower frames)
-    results = evaluate.run_methods(test, seg.model_cfg.n_instances, seg, progress=True)
-    extras = {}
-    for other_name, other in (also or {}).items():
-        seg.inference = other
-        extras[f"inseggan_{other_name}"] = evaluate.run_methods(
-            test, seg.model_cfg.n_instances, seg, methods=[], progress=False)["inseggan"]
-        seg.inference = inference
-    results = {"inseggan": results.pop("inseggan"), **extras, **results}
+    results = _test_results(seg, test, also)
     summary = evaluate.summarise(results, len(test["x"]))
 
     bag_scores = sample_bag_scores(seg, sample_bag) if sample_bag else None
@@ -133,15 +126,7 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, inference=None,
         "train_config": tcfg, "iterations": state["iteration"],
         "wall_minutes": round(state["elapsed_seconds"] / 60, 1),
         "hardware": f"{platform.machine()} CPU, {os.cpu_count()} cores (torch threads: 1)",
-        "tau": tau, "refine_steps": inference.refine_steps,
-        "hypotheses": inference.refine_hypotheses,
-        "smooth_iters": inference.smooth.iters, "keep": inference.refine_keep,
-        "full_res_smooth_iters": inference.smooth.full_res_active,
-        "inference": inference.to_dict(),
-        # what "auto" meant here: the model tests measure in it, whatever their CPU computes
-        # natively
-        "encoder_precision": seg.resolve_precision(inference.encoder_precision),
-        "also": {k: v.to_dict() for k, v in (also or {}).items()},
+        "tau": tau, **_settings_fields(seg, inference, also),
         "distillation": distill_record(state),
         "shape_fit": fit,
         "precision": precision,
@@ -157,13 +142,7 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, inference=None,
                 and old_data.get("counts") == card["data"]["counts"]:
             card["training_runs"] = runs
 
-    def write(tmp: Path) -> None:
-        ckpt.save(tmp / "model.pt", keep)
-        evaluate.qualitative_png(tmp / "qualitative.png", test, results, count=4)
-        (tmp / "card.json").write_text(json.dumps(card, indent=2))
-        (tmp / "README.md").write_text(card_markdown(card))
-
-    write_folder(out_dir, write)
+    _write_model_folder(out_dir, keep, card, test, results)
     return card
 
 
@@ -195,39 +174,68 @@ def apply_settings(model_dir, data_root, inference, also: dict | None = None) ->
     seg.inference = inference
     val = data_mod.load_sim_split(data_root, "val", seg.prep_cfg)
     test = data_mod.load_sim_split(data_root, "test", seg.prep_cfg)
-    results = evaluate.run_methods(test, seg.model_cfg.n_instances, seg, progress=True)
-    extras = {}
-    for other_name, other in (also or {}).items():
+    for other in (also or {}).values():
         seg.check(other)
-        seg.inference = other
-        extras[f"inseggan_{other_name}"] = evaluate.run_methods(
-            test, seg.model_cfg.n_instances, seg, methods=[], progress=False)["inseggan"]
-        seg.inference = inference
-    results = {"inseggan": results.pop("inseggan"), **extras, **results}
+    results = _test_results(seg, test, also)
     card.update({
-        "refine_steps": inference.refine_steps, "hypotheses": inference.refine_hypotheses,
-        "smooth_iters": inference.smooth.iters, "keep": inference.refine_keep,
-        "full_res_smooth_iters": inference.smooth.full_res_active,
-        "inference": inference.to_dict(),
-        "encoder_precision": seg.resolve_precision(inference.encoder_precision),
-        "also": {k: v.to_dict() for k, v in (also or {}).items()},
+        **_settings_fields(seg, inference, also),
         "val_miou": {"float32": None, "float16": None, card["precision"]: _val_miou(seg, val)},
         "test": evaluate.summarise(results, len(test["x"]))})
     if card.get("sample_bag"):
         card["sample_bag_scores"] = sample_bag_scores(seg, card["sample_bag"])
     state["inference"] = inference.to_dict()
 
+    _write_model_folder(model_dir, state, card, test, results, keep_other_files=True)
+    return card
+
+
+def _test_results(seg, test: dict, also: dict | None) -> dict:
+    """Every method on the test frames, InSeGAN with the segmenter's settings first, then a row
+    `inseggan_<name>` for each of `also`'s {name: InferenceConfig}."""
+    from . import evaluate
+
+    n = seg.model_cfg.n_instances
+    results = evaluate.run_methods(test, n, seg, progress=True)
+    shipped, extras = seg.inference, {}
+    for name, other in (also or {}).items():
+        seg.inference = other
+        extras[f"inseggan_{name}"] = evaluate.run_methods(test, n, seg, methods=[],
+                                                          progress=False)["inseggan"]
+    seg.inference = shipped
+    return {"inseggan": results.pop("inseggan"), **extras, **results}
+
+
+def _settings_fields(seg, inference, also: dict | None) -> dict:
+    """The card's record of the settings a model ships with (and of the `also` rows')."""
+    return {
+        "refine_steps": inference.refine_steps, "hypotheses": inference.refine_hypotheses,
+        "smooth_iters": inference.smooth.iters, "keep": inference.refine_keep,
+        "full_res_smooth_iters": inference.smooth.full_res_active,
+        "inference": inference.to_dict(),
+        # what "auto" meant here: the model tests measure in it, whatever their CPU computes
+        # natively
+        "encoder_precision": seg.resolve_precision(inference.encoder_precision),
+        "also": {k: v.to_dict() for k, v in (also or {}).items()}}
+
+
+def _write_model_folder(out_dir, state: dict, card: dict, test: dict, results: dict,
+                        keep_other_files: bool = False) -> None:
+    """model.pt, qualitative.png, card.json and README.md into `out_dir`, all at once; with
+    `keep_other_files` the folder's other files (the shape drawing) are carried over."""
+    from . import checkpoint as ckpt
+    from . import evaluate
+
     def write(tmp: Path) -> None:
-        for f in model_dir.iterdir():  # the shape drawing and anything else the folder holds
-            if f.is_file():
-                shutil.copy2(f, tmp / f.name)
+        if keep_other_files:
+            for f in Path(out_dir).iterdir():
+                if f.is_file():
+                    shutil.copy2(f, tmp / f.name)
         ckpt.save(tmp / "model.pt", state)
         evaluate.qualitative_png(tmp / "qualitative.png", test, results, count=4)
         (tmp / "card.json").write_text(json.dumps(card, indent=2))
         (tmp / "README.md").write_text(card_markdown(card))
 
-    write_folder(model_dir, write)
-    return card
+    write_folder(out_dir, write)
 
 
 def write_folder(out_dir, write) -> Path:
