@@ -12,7 +12,6 @@ Expected errors (bad arguments, a bag that cannot be read, an existing output) p
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 from pathlib import Path
@@ -197,7 +196,7 @@ def _load_training_data(args):
 
 
 def cmd_train(args) -> int:
-    from .train import get_config, train
+    from .train import get_config, torchrun_env, train
 
     cfg = get_config(args.config, nf=args.nf, composite=args.composite,
                      n_instances=args.instances, batch_size=args.batch_size,
@@ -218,7 +217,7 @@ def cmd_train(args) -> int:
     t0 = time.perf_counter()
     summary = train(cfg, train_data, val_data, args.out, prep.to_dict(), info,
                     device=args.device, resume=args.resume, progress=not args.quiet)
-    if int(os.environ.get("RANK", "0")) != 0:  # under torchrun, rank 0 reports for all
+    if torchrun_env()[1] != 0:  # under torchrun, rank 0 reports for all
         return 0
     print(f"trained {summary['iterations']} iterations in {summary['seconds'] / 60:.1f} min "
           f"({summary['images_per_s_this_process']:.0f} images/s on {summary['device']}); "

@@ -394,6 +394,12 @@ def plot_curves(history: list, path: Path) -> None:
 
 
 # ----------------------------------------------------------------------------- the loop
+def torchrun_env() -> tuple[int, int, int]:
+    """(world size, rank, local rank) as torchrun sets them; (1, 0, 0) in a plain process."""
+    return tuple(int(os.environ.get(k, d)) for k, d in
+                 (("WORLD_SIZE", "1"), ("RANK", "0"), ("LOCAL_RANK", "0")))
+
+
 def train(cfg: TrainConfig, train_data: dict, val_data: dict | None, out: Path,
           prep_cfg: dict, data_info: dict, device: str = "auto", resume: bool = False,
           progress: bool = True) -> dict:
@@ -406,8 +412,7 @@ def train(cfg: TrainConfig, train_data: dict, val_data: dict | None, out: Path,
     import torch.distributed as dist
 
     device = checkpoint.pick_device(device)
-    opened = (int(os.environ.get("WORLD_SIZE", "1")) > 1 and dist.is_available()
-              and not dist.is_initialized())
+    opened = torchrun_env()[0] > 1 and dist.is_available() and not dist.is_initialized()
     if opened:
         dist.init_process_group("nccl" if device.startswith("cuda") else "gloo")
     try:
@@ -423,11 +428,11 @@ def _train(cfg, train_data, val_data, out, prep_cfg, data_info, device, resume, 
 
     from .data import DepthTensorDataset
 
-    distributed = int(os.environ.get("WORLD_SIZE", "1")) > 1
-    rank = int(os.environ.get("RANK", "0"))
+    world_size, rank, local_rank = torchrun_env()
+    distributed = world_size > 1
     if distributed:
         if device.startswith("cuda"):
-            device = f"cuda:{int(os.environ.get('LOCAL_RANK', 0))}"
+            device = f"cuda:{local_rank}"
             torch.cuda.set_device(device)
     out = Path(out)
     is_main = rank == 0
@@ -569,7 +574,7 @@ def _train(cfg, train_data, val_data, out, prep_cfg, data_info, device, resume, 
     summary = {"iterations": run.iteration, "seconds": round(elapsed(), 1),
                "images_per_s_this_process": round(seen / max(time.monotonic() - start, 1e-9), 1),
                "best_score": run.best, "tau": run.tau, "resets": run.resets,
-               "device": device, "world_size": int(os.environ.get("WORLD_SIZE", "1")),
+               "device": device, "world_size": world_size,
                "weights_sha256_per_rank": checksums, "last": stats}
     if is_main:
         write_json(out / "summary.json", summary)
