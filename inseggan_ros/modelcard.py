@@ -170,12 +170,11 @@ def apply_settings(model_dir, data_root, inference, also: dict | None = None) ->
                          f"{card['object']}), whose test split the card reports")
     state = ckpt.load(model_dir / "model.pt")
     seg = Segmenter.from_checkpoint(model_dir / "model.pt", device="cpu")
-    seg.check(inference)
+    for cfg in (inference, *(also or {}).values()):
+        seg.check(cfg)
     seg.inference = inference
     val = data_mod.load_sim_split(data_root, "val", seg.prep_cfg)
     test = data_mod.load_sim_split(data_root, "test", seg.prep_cfg)
-    for other in (also or {}).values():
-        seg.check(other)
     results = _test_results(seg, test, also)
     card.update({
         **_settings_fields(seg, inference, also),

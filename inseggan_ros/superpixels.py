@@ -22,7 +22,7 @@ MIN_SIZE = 20  # pixels: smaller superpixels are merged into a neighbour
 
 
 def depth_superpixels(heights: np.ndarray, fg: np.ndarray, scale: float = 200,
-                      sigma: float = 0.3, min_size: int = 20) -> np.ndarray:
+                      sigma: float = SIGMA, min_size: int = MIN_SIZE) -> np.ndarray:
     """Felzenszwalb-Huttenlocher graph segmentation of a height image -> (H, W) int segment
     ids. The heights are rescaled to 0..1 over fg and the background set to -1, a strong edge
     round every object; `scale` sets how large segments grow (smaller: more, finer segments)."""
@@ -41,8 +41,7 @@ def vote_frame(lab: np.ndarray, heights: np.ndarray, n: int, scale: int) -> np.n
     fg = lab > 0
     if scale <= 0 or not fg.any():
         return lab
-    seg = depth_superpixels(np.asarray(heights, np.float64), fg, scale=scale, sigma=SIGMA,
-                            min_size=MIN_SIZE)
+    seg = depth_superpixels(np.asarray(heights, np.float64), fg, scale=scale)
     ids = seg[fg]
     counts = np.bincount(ids * (n + 1) + lab[fg], minlength=(seg.max() + 1) * (n + 1))
     counts = counts.reshape(-1, n + 1)  # foreground pixels only: column 0 stays empty
