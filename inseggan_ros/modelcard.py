@@ -491,8 +491,10 @@ def _settings_text(d: dict) -> str:
     head = ", labels from the label head" if cfg.label_head == "on" else ""
     vote = (f", then voted within depth superpixels (scale {cfg.superpixel_scale})"
             if cfg.superpixel_scale else "")
+    split = (f", missed parts split off along coarse depth segments (scale {cfg.split_scale})"
+             if cfg.split_scale else "")
     return (f"{start}{head}, {smooth.iters} smoothing iterations + {smooth.full_res_active} at "
-            f"full resolution{vote}{precision}")
+            f"full resolution{vote}{split}{precision}")
 
 
 def _distill_line(card: dict) -> list[str]:

@@ -29,7 +29,7 @@ from .preprocess import (PreprocessConfig, extend_labels, fill_labels_nearest, l
 from .refine import refine, refine_poses, start_poses
 from .settings import InferenceConfig
 from .smoothing import smooth_full, smooth_labels
-from .superpixels import vote_labels
+from .superpixels import split_labels, vote_labels
 
 TAU_GRID = tuple(np.round(np.linspace(-0.95, 0.5, 30), 3))
 
@@ -249,8 +249,10 @@ class Segmenter:
             labels = head_labels(self.label_head, x, out["renders"], labels, fg_t)
         labels = smooth_labels(labels, x, out["renders"].shape[1], cfg.smooth)
         labels = vote_labels(labels, x, out["renders"].shape[1], cfg.superpixel_scale)
+        labels, cut = split_labels(labels, x, out["renders"].shape[1], cfg.split_scale)
         out["labels"] = labels
-        out["scores"] = instance_scores(out["renders"], labels, tau)
+        # a piece cut off another instance has no render to measure its visible share by: 0
+        out["scores"] = instance_scores(out["renders"], labels, tau).masked_fill(cut, 0.0)
         return out
 
     def __call__(self, depth_m: np.ndarray, prep_cfg=None, tau: float | None = None,

@@ -87,6 +87,10 @@ class InferenceConfig:
         "the labels voted within depth superpixels (superpixels.py): Felzenszwalb's graph "
         "segmentation of the 64 x 64 heights at this scale (smaller: finer superpixels), each "
         "superpixel given its most frequent label (0 = off)", 0, 10000))
+    split_scale: int = field(default=0, metadata=_doc(
+        "then parts the model missed found again (superpixels.py): a label that spans several "
+        "segments of the heights at this coarse scale, or several regions, gives its second "
+        "piece an unused id or one that labels fewer pixels (0 = off)", 0, 10000))
     label_head: str = field(default="off", metadata=_doc(
         "the labels from the model's label head (on: each pixel moved to the instance the head "
         "scores highest, given the input and the renders; models without a head: off) or "
@@ -98,6 +102,7 @@ class InferenceConfig:
                 ("refine_hypotheses", self.refine_hypotheses >= 1, ">= 1"),
                 ("refine_keep", self.refine_keep >= 0, ">= 0 (0 = all starting points)"),
                 ("superpixel_scale", self.superpixel_scale >= 0, ">= 0 (0 = off)"),
+                ("split_scale", self.split_scale >= 0, ">= 0 (0 = off)"),
                 ("encoder_precision", self.encoder_precision in PRECISIONS,
                  ", ".join(PRECISIONS)),
                 ("label_head", self.label_head in LABEL_HEAD, ", ".join(LABEL_HEAD))):

@@ -15,7 +15,10 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+from skimage.measure import label as _connected_regions
 from skimage.segmentation import felzenszwalb as _skimage_felzenszwalb
+
+from .preprocess import fill_labels_nearest
 
 SIGMA = 0.3  # Gaussian pre-smoothing, pixels (the baseline's: keeps height steps sharp)
 MIN_SIZE = 20  # pixels: smaller superpixels are merged into a neighbour
@@ -57,3 +60,66 @@ def vote_labels(labels: torch.Tensor, x: torch.Tensor, n: int, scale: int) -> to
     lab, heights = labels.cpu().numpy(), x[:, 0].float().cpu().numpy()
     out = np.stack([vote_frame(lab[b], heights[b], n, scale) for b in range(len(lab))])
     return torch.from_numpy(out).to(labels.device)
+
+
+def split_frame(lab: np.ndarray, heights: np.ndarray, n: int, scale: int
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Parts the model missed, found again along the frame's height edges -> (labels, (n,)
+    bool: which of the ids 1..n now label a piece cut off another instance).
+
+    The bin holds n parts and the model renders n instances, but two renders can land on one
+    part, leaving a neighbour to be covered by the label of a third: its label then spans two
+    parts, with a height edge between them, while another label is missing or small. Each
+    label is cut into pieces, by the graph segmentation at a coarse `scale` (the baseline's
+    segments, or larger ones) and into its connected regions. Then, as long as some label has a
+    piece besides its largest one (at least MIN_SIZE pixels): an unused id takes the largest
+    such piece; when all n ids are used, the piece replaces the smallest label if it is larger
+    than it, whose pixels go to the nearest remaining label. Background stays background."""
+    fg = lab > 0
+    changed = np.zeros(n, bool)
+    if scale <= 0 or not fg.any():
+        return lab, changed
+    out = lab.astype(np.int64)
+    coarse = depth_superpixels(np.asarray(heights, np.float64), fg, scale=scale)
+    regions = _connected_regions(out, background=0, connectivity=1)
+    pieces = np.unique(coarse * (regions.max() + 1) + regions, return_inverse=True)[1]
+    pieces = pieces.reshape(lab.shape)
+    for _ in range(2 * n):  # each round fills or replaces one id
+        ids, sizes = np.unique(out[out > 0], return_counts=True)
+        if len(ids) == 0:
+            break
+        pair = np.bincount(out[out > 0] * (pieces.max() + 1) + pieces[out > 0],
+                           minlength=(n + 1) * (pieces.max() + 1)).reshape(n + 1, -1)
+        free = [k for k in range(1, n + 1) if k not in ids]
+        smallest = ids[sizes.argmin()]
+        best = (0, 0, 0)  # (size, label, piece) of the largest piece besides a label's largest
+        for k in ids:
+            if not free and k == smallest:
+                continue
+            order = np.argsort(-pair[k])
+            if pair[k, order[1]] > best[0]:
+                best = (pair[k, order[1]], k, order[1])
+        size, k, piece = best
+        if size < MIN_SIZE or (not free and size <= sizes.min()):
+            break
+        new = free[0] if free else smallest
+        if not free:
+            out[out == smallest] = 0  # its pixels go to the nearest label below
+        out[(out == k) & (pieces == piece)] = new
+        changed[new - 1] = True
+    if (fg & (out == 0)).any():
+        out = fill_labels_nearest(out, fg)
+    return out.astype(lab.dtype), changed
+
+
+def split_labels(labels: torch.Tensor, x: torch.Tensor, n: int, scale: int
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """(B, H, W) labels of the (B, 1, H, W) model input -> `split_frame` of each frame:
+    labels and (B, n) bool of the ids that now label a piece cut off another instance."""
+    if scale <= 0:
+        return labels, torch.zeros(len(labels), n, dtype=torch.bool, device=labels.device)
+    lab, heights = labels.cpu().numpy(), x[:, 0].float().cpu().numpy()
+    done = [split_frame(lab[b], heights[b], n, scale) for b in range(len(lab))]
+    out = np.stack([d[0] for d in done])
+    changed = np.stack([d[1] for d in done])
+    return torch.from_numpy(out).to(labels.device), torch.from_numpy(changed).to(labels.device)

@@ -358,7 +358,8 @@ def test_inference_config_validates_and_reads_old_checkpoints():
     for bad, match in (({"refine_steps": -1}, "refine_steps -1 invalid"),
                        ({"refine_hypotheses": 0}, "refine_hypotheses 0 invalid; valid: >= 1"),
                        ({"refine_keep": -2}, "refine_keep -2 invalid"),
-                       ({"superpixel_scale": -1}, "superpixel_scale -1 invalid; valid: >= 0")):
+                       ({"superpixel_scale": -1}, "superpixel_scale -1 invalid; valid: >= 0"),
+                       ({"split_scale": -800}, "split_scale -800 invalid; valid: >= 0")):
         with pytest.raises(ValueError, match=match):
             InferenceConfig(**bad)
     with pytest.raises(ValueError, match="smooth_full_res_iters"):
@@ -383,7 +384,7 @@ def test_settings_have_one_name_as_field_parameter_and_flag():
     names = [s.name for s in settings.exposed()]
     assert names == ["refine_steps", "refine_hypotheses", "refine_keep", "smooth_iters",
                      "smooth_full_res_iters", "encoder_precision", "superpixel_scale",
-                     "label_head"]
+                     "split_scale", "label_head"]
     parser = argparse.ArgumentParser()
     settings.add_flags(parser, "(default: the model's)")
     args = parser.parse_args(["--refine-hypotheses", "8", "--smooth-full-res-iters", "0",

@@ -241,9 +241,10 @@ def test_card_settings_ships_other_settings_and_measures_the_card_anew(tmp):
         run_cli("simulate", "--object", "cone", "--count", "8", "--split", "0,1,1", "--seed",
                 seed, "--workers", "1", "--quiet", "--out", out, check=True)
     run_cli("card-settings", folder, "--data", tmp / "cone_data", "--profile", "realtime",
-            "--superpixel-scale", "0", "--smooth-iters", "3", check=True, timeout=600)
+            "--superpixel-scale", "0", "--split-scale", "0", "--smooth-iters", "3", check=True,
+            timeout=600)
     state = checkpoint.load(folder / "model.pt")
-    assert state["inference"]["superpixel_scale"] == 0
+    assert state["inference"]["superpixel_scale"] == 0 and state["inference"]["split_scale"] == 0
     assert state["inference"]["smooth"]["iters"] == 3 and state["tau"] == before["tau"]
     for key in ("generator", "encoder"):
         for name, value in before[key].items():

@@ -229,6 +229,8 @@ def test_parameter_changes_are_validated_at_run_time():
         ("smooth_iters", "-1", "rejected"),  # outside 0..200
         ("superpixel_scale", "50", "ok"),
         ("superpixel_scale", "-1", "rejected"),  # outside 0..10000
+        ("split_scale", "800", "ok"),
+        ("split_scale", "10001", "rejected"),  # outside 0..10000
         ("rim_band", "0.0", "ok"),
         ("rim_band", "1.5", "rejected"),  # outside 0..1
         ("rim_step", "0.0", "rejected"),  # outside 0.0001..0.1

@@ -1,4 +1,5 @@
-"""The model's labels voted within depth superpixels (`superpixels.py`, `superpixel_scale`)."""
+"""The model's labels voted within depth superpixels (`superpixels.py`, `superpixel_scale`), and
+the parts it missed split off along coarse depth segments (`split_scale`)."""
 from dataclasses import replace
 
 import numpy as np
@@ -9,7 +10,8 @@ from conftest import BAGS, REPO
 from inseggan_ros import data, evaluate
 from inseggan_ros.metrics import mean_miou, miou_batch
 from inseggan_ros.segment import Segmenter
-from inseggan_ros.superpixels import depth_superpixels, vote_frame, vote_labels
+from inseggan_ros.superpixels import (depth_superpixels, split_frame, split_labels, vote_frame,
+                                      vote_labels)
 
 
 def two_blocks():
@@ -61,7 +63,7 @@ def cylinder_bag():
 def test_the_segmenter_votes_its_labels_after_smoothing(cylinder_bag):
     seg, frames = cylinder_bag
     x = frames["x"][:4]
-    plain = replace(seg.inference, superpixel_scale=0)
+    plain = replace(seg.inference, superpixel_scale=0, split_scale=0)
     voted = seg.segment_batch(x, settings=replace(plain, superpixel_scale=50))["labels"]
     before = seg.segment_batch(x, settings=plain)["labels"]
     expect = vote_labels(before, torch.as_tensor(x), seg.model_cfg.n_instances, 50)
@@ -75,7 +77,57 @@ def test_voting_raises_the_mIoU_on_the_cylinder_sample_bag(cylinder_bag):
     seg, frames = cylinder_bag
     scores = {}
     for scale in (0, 50):
-        seg.inference = replace(seg.inference, superpixel_scale=scale)
+        seg.inference = replace(seg.inference, superpixel_scale=scale, split_scale=0)
         r = evaluate.run_methods(frames, seg.model_cfg.n_instances, seg, [], progress=False)
         scores[scale] = mean_miou(miou_batch(r["inseggan"]["labels"], frames["labels"]))
     assert scores[50] > scores[0] + 0.01, scores
+
+
+def three_blocks():
+    """Heights of three blocks side by side at different heights, touching; their labels."""
+    h = np.zeros((64, 64))
+    h[10:50, 4:24], h[10:50, 24:44], h[10:50, 44:60] = 0.3, 0.6, 0.9
+    truth = np.zeros((64, 64), np.uint8)
+    truth[10:50, 4:24], truth[10:50, 24:44], truth[10:50, 44:60] = 1, 2, 3
+    return h, truth
+
+
+def test_a_label_over_two_parts_gives_the_part_missed_an_unused_id():
+    h, truth = three_blocks()
+    merged = np.where(truth == 3, 2, truth).astype(np.uint8)  # two renders on block 1, none on 3
+    out, cut = split_frame(merged, h, 3, 800)
+    np.testing.assert_array_equal(out, truth)
+    assert cut.tolist() == [False, False, True]
+    np.testing.assert_array_equal(split_frame(merged, h, 3, 0)[0], merged)  # scale 0: off
+    # with only two ids there is none to give: nothing changes
+    two, cut2 = split_frame(merged, h, 2, 800)
+    np.testing.assert_array_equal(two, merged)
+    assert not cut2.any()
+
+
+def test_a_larger_missed_part_replaces_the_smallest_label():
+    h, truth = three_blocks()
+    merged = np.where(truth == 3, 2, truth).astype(np.uint8)
+    merged[20:24, 8:12] = 3  # a stray label of 16 pixels inside block 1: all three ids are used
+    out, cut = split_frame(merged, h, 3, 800)
+    np.testing.assert_array_equal(out, truth)  # the stray pixels went to their nearest label, 1
+    assert cut.tolist() == [False, False, True]
+    # a second piece no larger than the smallest label stays where it is
+    stray = truth.copy()
+    stray[10:50, 44:48] = 2  # label 2 spills onto block 3 (160 pixels); label 3 keeps 480
+    kept, cut3 = split_frame(stray, h, 3, 800)
+    np.testing.assert_array_equal(kept, stray)
+    assert not cut3.any()
+
+
+def test_the_segmenter_splits_after_the_vote_and_scores_cut_pieces_zero(cylinder_bag):
+    seg, frames = cylinder_bag
+    x = frames["x"]
+    n = seg.model_cfg.n_instances
+    voted = replace(seg.inference, superpixel_scale=50, split_scale=0)
+    out = seg.segment_batch(x, settings=replace(voted, split_scale=800))
+    before = seg.segment_batch(x, settings=voted)["labels"]
+    expect, cut = split_labels(before, torch.as_tensor(x), n, 800)
+    torch.testing.assert_close(out["labels"], expect)
+    assert cut.any(), "the sample bag has frames where the model missed a part"
+    assert (out["scores"][cut] == 0).all() and (out["scores"][~cut] > 0).any()
