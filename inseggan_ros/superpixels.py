@@ -96,9 +96,11 @@ def split_frame(lab: np.ndarray, heights: np.ndarray, n: int, scale: int
         for k in ids:
             if not free and k == smallest:
                 continue
-            order = np.argsort(-pair[k])
-            if pair[k, order[1]] > best[0]:
-                best = (pair[k, order[1]], k, order[1])
+            others = pair[k].copy()
+            others[others.argmax()] = 0  # all but the label's largest piece
+            j = others.argmax()
+            if others[j] > best[0]:
+                best = (others[j], k, j)
         size, k, piece = best
         if size < MIN_SIZE or (not free and size <= sizes.min()):
             break

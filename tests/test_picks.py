@@ -86,6 +86,9 @@ def test_hidden_share_of_a_render_is_what_other_labels_cover():
     labels[1:3, :] = 2  # and 4 lost to instance 2
     got = picks.hidden_from_renders(renders, labels, tau=0.0)
     np.testing.assert_allclose(got, [0.5, 0.0, 0.0])  # instance 3: not drawn
+    labels[3, :] = 3  # a piece split off another instance: it holds pixels, its score is 0
+    got = picks.hidden_from_renders(renders, labels, tau=0.0, scores=[0.5, 1.0, 0.0])
+    np.testing.assert_allclose(got, [0.5, 0.0, 1.0])
     np.testing.assert_allclose(picks.occluded_from_scores([1.2, 0.25, 0.0]), [0, 0.75, 1])
 
 

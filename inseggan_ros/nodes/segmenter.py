@@ -208,7 +208,7 @@ class SegmenterNode(Node):
         self.pick_problem = ""
         if self.pub_picks.get_subscription_count() + self.pub_markers.get_subscription_count() == 0:
             return
-        occluded = hidden_from_renders(seg.renders64, seg.labels64, self.p["tau"])
+        occluded = hidden_from_renders(seg.renders64, seg.labels64, self.p["tau"], seg.scores)
         picks = compute_picks(depth, seg.labels, K, occluded, self.pick_cfg)
         self.pub_picks.publish(conversions.picks_to_pose_array(picks, msg.header))
         if self.pub_markers.get_subscription_count() > 0:
