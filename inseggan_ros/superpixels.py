@@ -10,6 +10,11 @@ decides which superpixels form one part, so parts that touch at one height, whic
 baseline merges, stay apart wherever the superpixels separate them. Measured on the seven
 parts' validation splits and chosen there, never on the test splits (docs/experiments.md,
 2026-11-26).
+
+After the vote, `split_frame` (`InferenceConfig.split_scale`) finds parts the model missed:
+where two renders land on one part, a third instance's label covers its own part and a
+neighbour across a height edge; the coarse graph segmentation cuts it there and the second
+piece gets an id of its own (chosen the same way, 2026-11-26, night).
 """
 from __future__ import annotations
 
