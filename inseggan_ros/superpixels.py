@@ -88,13 +88,12 @@ def split_frame(lab: np.ndarray, heights: np.ndarray, n: int, scale: int
     coarse = depth_superpixels(np.asarray(heights, np.float64), fg, scale=scale)
     regions = _connected_regions(out, background=0, connectivity=1)
     pieces = np.unique(coarse * (regions.max() + 1) + regions, return_inverse=True)[1]
-    pieces = pieces.reshape(lab.shape)
-    for _ in range(2 * n):  # each round fills or replaces one id
-        ids, sizes = np.unique(out[out > 0], return_counts=True)
-        if len(ids) == 0:
-            break
-        pair = np.bincount(out[out > 0] * (pieces.max() + 1) + pieces[out > 0],
-                           minlength=(n + 1) * (pieces.max() + 1)).reshape(n + 1, -1)
+    pieces, count = pieces.reshape(lab.shape), pieces.max() + 1
+    for _ in range(2 * n):  # each round fills or replaces one id; a label never empties
+        labelled = out > 0
+        ids, sizes = np.unique(out[labelled], return_counts=True)
+        pair = np.bincount(out[labelled] * count + pieces[labelled],
+                           minlength=(n + 1) * count).reshape(n + 1, count)
         free = [k for k in range(1, n + 1) if k not in ids]
         smallest = ids[sizes.argmin()]
         best = (0, 0, 0)  # (size, label, piece) of the largest piece besides a label's largest
