@@ -49,8 +49,10 @@ def simulated_frames(count: int, width: int, height: int) -> list[np.ndarray]:
                 for k in range(count)]
 
 
-def in_process_reference(frames, model_path: str, params: dict, repeats: int = 3) -> dict:
-    """Inference alone and conversion alone, in this process (one thread), for comparison."""
+def in_process_reference(frames, model_path: str, params: dict, repeats: int = 3,
+                         superpixel_thread: bool = False) -> dict:
+    """Inference alone and conversion alone, in this process (one torch thread, and the
+    superpixel thread as the node's `superpixel_thread`), for comparison."""
     import torch
 
     from .image_codec import depth_to_metres
@@ -60,7 +62,8 @@ def in_process_reference(frames, model_path: str, params: dict, repeats: int = 3
     from .segment import Segmenter
 
     torch.set_num_threads(1)
-    seg = Segmenter.from_checkpoint(resolve_model(model_path), device="cpu")
+    seg = Segmenter.from_checkpoint(resolve_model(model_path), device="cpu",
+                                    superpixel_thread=superpixel_thread)
     cfg = settings.apply(seg.inference, params)
     prep = node_defaults(seg.prep_cfg,
                          [depth_to_metres(f, "16UC1") for f in frames[:BIN_FRAMES]])
@@ -93,6 +96,8 @@ def main(argv=None) -> int:
                     help="ROS 2 parameters file for the segmenter (e.g. config/quality.yaml)")
     for s in settings.exposed():  # the segmenter's inference settings, one name each
         ap.add_argument(s.flag, type=s.type, choices=s.choices, help=f"segmenter {s.name}")
+    ap.add_argument("--superpixel-thread", choices=("on", "off"), default="on",
+                    help="the segmenter's superpixel_thread (default on, as the node's)")
     ap.add_argument("--default-transport", action="store_true",
                     help="Fast DDS's built-in transports instead of the shipped large-frames "
                          "profile (config/fastdds_large_frames.xml)")
@@ -131,7 +136,8 @@ def main(argv=None) -> int:
 
     frames = simulated_frames(args.distinct_frames, args.width, args.height)
     try:
-        ref = in_process_reference(frames, args.model, params)
+        ref = in_process_reference(frames, args.model, params,
+                                   superpixel_thread=args.superpixel_thread == "on")
     except (CheckpointError, ConfigError, ValueError) as e:
         print(f"bench-node: error: {e}", file=sys.stderr)
         return 2
@@ -152,6 +158,7 @@ def main(argv=None) -> int:
         model += ["-p", f"model_path:={args.model}"]
     for name, value in flags.items():
         model += ["-p", f"{name}:={value}"]
+    model += ["-p", f"superpixel_thread:={str(args.superpixel_thread == 'on').lower()}"]
     env = None
     if args.node_sets_profile:
         env = {k: v for k, v in os.environ.items() if k not in PROFILE_VARIABLES}
@@ -210,7 +217,8 @@ def main(argv=None) -> int:
     print(f"  settings: {cfg.refine_steps} refinement iterations, {cfg.refine_hypotheses} "
           f"starting points ({cfg.refine_keep or 'all'} refined), smoothing {cfg.smooth.iters} + "
           f"{cfg.smooth.full_res_active} at full resolution, encoder in "
-          f"{last.get('encoder_precision', cfg.encoder_precision)}"
+          f"{last.get('encoder_precision', cfg.encoder_precision)}, superpixel thread "
+          f"{args.superpixel_thread}"
           + (f" (params file {args.params_file})" if args.params_file else ""))
     print(f"  frames: sent {len(sent)}, answered {len(got)} "
           f"({100 * len(got) / max(len(sent), 1):.1f} %),"
@@ -224,7 +232,8 @@ def main(argv=None) -> int:
         print(f"  end to end (stamp -> labels received here): p50 {np.percentile(e2e, 50):.1f} ms,"
               f" p99 {np.percentile(e2e, 99):.1f} ms")
     print(f"  peak resident memory of the node: {peak_mb:.0f} MB   [target <= 1024]")
-    print(f"  in this process, same frames, one thread: preprocessing + inference p50 "
+    print(f"  in this process, same frames, one torch thread (superpixel thread "
+          f"{args.superpixel_thread}): preprocessing + inference p50 "
           f"{np.percentile(ref['inference_ms'], 50):.1f} ms (p99 "
           f"{np.percentile(ref['inference_ms'], 99):.1f}); conversion p50 "
           f"{np.percentile(ref['conversion_ms'], 50):.2f} ms")

@@ -12,6 +12,7 @@ tau is calibrated on validation data and stored in the checkpoint (no per-object
 """
 from __future__ import annotations
 
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -29,7 +30,7 @@ from .preprocess import (PreprocessConfig, extend_labels, fill_labels_nearest, l
 from .refine import refine, refine_poses, start_poses
 from .settings import InferenceConfig
 from .smoothing import smooth_full, smooth_labels
-from .superpixels import split_labels, vote_labels
+from .superpixels import frame_segments, split_labels, vote_labels
 
 TAU_GRID = tuple(np.round(np.linspace(-0.95, 0.5, 30), 3))
 
@@ -160,10 +161,16 @@ class Segmentation:
 
 class Segmenter:
     """A trained model + its preprocessing + tau + its test-time settings (`InferenceConfig`):
-    depth frames in, segmentations out."""
+    depth frames in, segmentations out.
+
+    `superpixel_thread`: a frame's two graph segmentations (`superpixels.frame_segments`),
+    which depend on the input alone, are made in a second thread while the encoder and the
+    renders run in this one; the labels are the same, the frame's latency lower where a second
+    core is free (docs/benchmarks.md)."""
 
     def __init__(self, G, E, model_cfg, prep_cfg, tau: float, device: str = "cpu",
-                 inference: InferenceConfig = InferenceConfig(), label_head=None):
+                 inference: InferenceConfig = InferenceConfig(), label_head=None,
+                 superpixel_thread: bool = False):
         self.G, self.E = G.eval().to(device), E.eval().to(device)
         self.label_head = label_head.eval().to(device) if label_head is not None else None
         for p in self.G.parameters():  # test-time refinement optimises codes, never weights
@@ -171,6 +178,8 @@ class Segmenter:
         self.model_cfg, self.prep_cfg, self.tau, self.device = model_cfg, prep_cfg, tau, device
         self.inference = inference
         self._encoders = {}  # precision -> the encoder that computes in it
+        self.superpixel_thread = superpixel_thread
+        self._pool = None  # made on first use
 
     def check(self, cfg: InferenceConfig) -> None:
         """Raises ValueError, naming the setting and what is valid, if this model cannot run
@@ -204,7 +213,8 @@ class Segmenter:
         return self._encoders[precision]
 
     @staticmethod
-    def from_checkpoint(path, device: str = "auto", tau: float | None = None) -> "Segmenter":
+    def from_checkpoint(path, device: str = "auto", tau: float | None = None,
+                        superpixel_thread: bool = False) -> "Segmenter":
         """A checkpoint (training's or an exported model.pt) -> its Segmenter, with the
         checkpoint's preprocessing, tau (unless `tau` is given) and inference settings."""
         state = checkpoint.load(path)
@@ -228,13 +238,15 @@ class Segmenter:
                                              "have (label_head: on)")
         tau = float(state.get("tau", -0.5) if tau is None else tau)
         return Segmenter(G, E, cfg, prep, tau, device=checkpoint.pick_device(device),
-                         inference=inference, label_head=head)
+                         inference=inference, label_head=head,
+                         superpixel_thread=superpixel_thread)
 
     @torch.no_grad()
     def segment_batch(self, x: np.ndarray | torch.Tensor, fg=None, tau: float | None = None,
-                      settings: InferenceConfig | None = None) -> dict:
+                      settings: InferenceConfig | None = None, segments=None) -> dict:
         """(B, 1, 64, 64) prepared inputs -> labels (B, 64, 64) uint8, renders, scores, recon.
-        `tau` and `settings` override the model's."""
+        `tau` and `settings` override the model's. `segments`: each frame's
+        `superpixels.frame_segments` made beforehand (a list, or a Future of one)."""
         tau = self.tau if tau is None else float(tau)
         cfg = self.inference if settings is None else settings
         x = torch.as_tensor(x, dtype=torch.float32, device=self.device)
@@ -248,8 +260,10 @@ class Segmenter:
                 raise ValueError("label_head on: this model has no label head; valid: off")
             labels = head_labels(self.label_head, x, out["renders"], labels, fg_t)
         labels = smooth_labels(labels, x, out["renders"].shape[1], cfg.smooth)
-        labels = vote_labels(labels, x, out["renders"].shape[1], cfg.superpixel_scale)
-        labels, cut = split_labels(labels, x, out["renders"].shape[1], cfg.split_scale)
+        if isinstance(segments, Future):
+            segments = segments.result()
+        labels = vote_labels(labels, x, out["renders"].shape[1], cfg.superpixel_scale, segments)
+        labels, cut = split_labels(labels, x, out["renders"].shape[1], cfg.split_scale, segments)
         out["labels"] = labels
         # a piece cut off another instance has no render to measure its visible share by: 0
         out["scores"] = instance_scores(out["renders"], labels, tau).masked_fill(cut, 0.0)
@@ -270,7 +284,15 @@ class Segmenter:
             raise ValueError("max_height and size are fixed by the model: "
                              f"{self.prep_cfg.max_height} m, {self.prep_cfg.size} px")
         prep = prepare(depth_m, prep_cfg)
-        out = self.segment_batch(prep.x[None, None], fg=prep.fg[None], tau=tau, settings=cfg)
+        x64 = np.asarray(prep.x, np.float32)  # the heights segment_batch computes with
+        segments = None
+        if self.superpixel_thread and (cfg.superpixel_scale > 0 or cfg.split_scale > 0):
+            if self._pool is None:
+                self._pool = ThreadPoolExecutor(1, thread_name_prefix="superpixels")
+            segments = self._pool.submit(lambda: [frame_segments(
+                x64, prep.fg, cfg.superpixel_scale, cfg.split_scale)])
+        out = self.segment_batch(x64[None, None], fg=prep.fg[None], tau=tau, settings=cfg,
+                                 segments=segments)
         labels64 = out["labels"][0].cpu().numpy()
         labels = extend_labels(labels_to_full(labels64, prep), depth_m, prep, prep_cfg)
         labels = smooth_full(labels, depth_m, prep.floor_depth, prep_cfg.max_height,

@@ -15,8 +15,15 @@ After the vote, `split_frame` (`InferenceConfig.split_scale`) finds parts the mo
 where two renders land on one part, a third instance's label covers its own part and a
 neighbour across a height edge; the coarse graph segmentation cuts it there and the second
 piece gets an id of its own (chosen the same way, 2026-11-26, night).
+
+Both segmentations depend on the input alone, not on the model's labels, so `frame_segments`
+can compute them beforehand (`Segmenter(superpixel_thread=True)` does, in a second thread
+while the encoder runs); the vote and the split use them where the labels' foreground is the
+one they were made for, and otherwise segment anew: the labels are the same either way.
 """
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -42,14 +49,50 @@ def depth_superpixels(heights: np.ndarray, fg: np.ndarray, scale: float = 200,
                                  channel_axis=None)
 
 
-def vote_frame(lab: np.ndarray, heights: np.ndarray, n: int, scale: int) -> np.ndarray:
+@dataclass(frozen=True)
+class Segments:
+    """A frame's graph segmentations at the vote's and the split's scales (None: that step is
+    off), and the foreground they were made for."""
+    fg: np.ndarray
+    scales: tuple[int, int]
+    fine: np.ndarray | None
+    coarse: np.ndarray | None
+
+    def get(self, fg: np.ndarray, scale: int, coarse: bool) -> np.ndarray | None:
+        """The segmentation at `scale` for foreground `fg`, or None if this is not it."""
+        if self.scales[coarse] != scale or not np.array_equal(self.fg, fg):
+            return None
+        return self.coarse if coarse else self.fine
+
+
+def frame_segments(heights: np.ndarray, fg: np.ndarray, superpixel_scale: int,
+                   split_scale: int) -> Segments:
+    """The segmentations `vote_frame` and `split_frame` make of a frame whose labels cover
+    `fg` (the z-buffer's labels cover the input's foreground), made beforehand."""
+    heights, fg = np.asarray(heights, np.float64), np.asarray(fg, bool)
+
+    def segment(scale):
+        return depth_superpixels(heights, fg, scale=scale) if scale > 0 and fg.any() else None
+
+    return Segments(fg.copy(), (superpixel_scale, split_scale), segment(superpixel_scale),
+                    segment(split_scale))
+
+
+def _segments(pre: Segments | None, heights, fg, scale: int, coarse: bool) -> np.ndarray:
+    seg = pre.get(fg, scale, coarse) if pre is not None else None
+    return depth_superpixels(np.asarray(heights, np.float64), fg, scale=scale) \
+        if seg is None else seg
+
+
+def vote_frame(lab: np.ndarray, heights: np.ndarray, n: int, scale: int,
+               pre: Segments | None = None) -> np.ndarray:
     """(H, W) labels (0 = background, 1..n) and heights -> labels constant on each superpixel
     of the foreground (its most frequent label; ties to the lower label). Background stays
-    background."""
+    background. `pre`: the frame's `frame_segments`, if made beforehand."""
     fg = lab > 0
     if scale <= 0 or not fg.any():
         return lab
-    seg = depth_superpixels(np.asarray(heights, np.float64), fg, scale=scale)
+    seg = _segments(pre, heights, fg, scale, coarse=False)
     ids = seg[fg]
     counts = np.bincount(ids * (n + 1) + lab[fg], minlength=(seg.max() + 1) * (n + 1))
     counts = counts.reshape(-1, n + 1)  # foreground pixels only: column 0 stays empty
@@ -58,17 +101,20 @@ def vote_frame(lab: np.ndarray, heights: np.ndarray, n: int, scale: int) -> np.n
     return out
 
 
-def vote_labels(labels: torch.Tensor, x: torch.Tensor, n: int, scale: int) -> torch.Tensor:
-    """(B, H, W) labels of the (B, 1, H, W) model input -> `vote_frame` of each frame."""
+def vote_labels(labels: torch.Tensor, x: torch.Tensor, n: int, scale: int,
+                pre: list[Segments] | None = None) -> torch.Tensor:
+    """(B, H, W) labels of the (B, 1, H, W) model input -> `vote_frame` of each frame (`pre`:
+    their `frame_segments`, if made beforehand)."""
     if scale <= 0:
         return labels
     lab, heights = labels.cpu().numpy(), x[:, 0].float().cpu().numpy()
-    out = np.stack([vote_frame(lab[b], heights[b], n, scale) for b in range(len(lab))])
+    pre = [None] * len(lab) if pre is None else pre
+    out = np.stack([vote_frame(lab[b], heights[b], n, scale, pre[b]) for b in range(len(lab))])
     return torch.from_numpy(out).to(labels.device)
 
 
-def split_frame(lab: np.ndarray, heights: np.ndarray, n: int, scale: int
-                ) -> tuple[np.ndarray, np.ndarray]:
+def split_frame(lab: np.ndarray, heights: np.ndarray, n: int, scale: int,
+                pre: Segments | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Parts the model missed, found again along the frame's height edges -> (labels, (n,)
     bool: which of the ids 1..n now label a piece cut off another instance).
 
@@ -79,13 +125,14 @@ def split_frame(lab: np.ndarray, heights: np.ndarray, n: int, scale: int
     segments, or larger ones) and into its connected regions. Then, as long as some label has a
     piece besides its largest one (at least MIN_SIZE pixels): an unused id takes the largest
     such piece; when all n ids are used, the piece replaces the smallest label if it is larger
-    than it, whose pixels go to the nearest remaining label. Background stays background."""
+    than it, whose pixels go to the nearest remaining label. Background stays background.
+    `pre`: the frame's `frame_segments`, if made beforehand."""
     fg = lab > 0
     changed = np.zeros(n, bool)
     if scale <= 0 or not fg.any():
         return lab, changed
     out = lab.astype(np.int64)
-    coarse = depth_superpixels(np.asarray(heights, np.float64), fg, scale=scale)
+    coarse = _segments(pre, heights, fg, scale, coarse=True)
     regions = _connected_regions(out, background=0, connectivity=1)
     pieces = np.unique(coarse * (regions.max() + 1) + regions, return_inverse=True)[1]
     pieces, count = pieces.reshape(lab.shape), pieces.max() + 1
@@ -118,14 +165,16 @@ def split_frame(lab: np.ndarray, heights: np.ndarray, n: int, scale: int
     return out.astype(lab.dtype), changed
 
 
-def split_labels(labels: torch.Tensor, x: torch.Tensor, n: int, scale: int
-                 ) -> tuple[torch.Tensor, torch.Tensor]:
+def split_labels(labels: torch.Tensor, x: torch.Tensor, n: int, scale: int,
+                 pre: list[Segments] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """(B, H, W) labels of the (B, 1, H, W) model input -> `split_frame` of each frame:
-    labels and (B, n) bool of the ids that now label a piece cut off another instance."""
+    labels and (B, n) bool of the ids that now label a piece cut off another instance (`pre`:
+    their `frame_segments`, if made beforehand)."""
     if scale <= 0:
         return labels, torch.zeros(len(labels), n, dtype=torch.bool, device=labels.device)
     lab, heights = labels.cpu().numpy(), x[:, 0].float().cpu().numpy()
-    done = [split_frame(lab[b], heights[b], n, scale) for b in range(len(lab))]
+    pre = [None] * len(lab) if pre is None else pre
+    done = [split_frame(lab[b], heights[b], n, scale, pre[b]) for b in range(len(lab))]
     out = np.stack([d[0] for d in done])
     changed = np.stack([d[1] for d in done])
     return torch.from_numpy(out).to(labels.device), torch.from_numpy(changed).to(labels.device)

@@ -225,6 +225,7 @@ def test_parameter_changes_are_validated_at_run_time():
         ("roi", "[10, 10, 200, 200]", "ok"),
         ("bin_polygon", "[1.0, 2.0]", "rejected: bin_polygon"),
         ("model_path", "'other.pt'", "rejected"),  # read-only
+        ("superpixel_thread", "False", "rejected"),  # read-only
         ("smooth_iters", "5", "ok"),
         ("smooth_iters", "-1", "rejected"),  # outside 0..200
         ("superpixel_scale", "50", "ok"),

@@ -7,11 +7,11 @@ import pytest
 import torch
 from conftest import BAGS, REPO
 
-from inseggan_ros import data, evaluate
+from inseggan_ros import bags, data, evaluate
 from inseggan_ros.metrics import mean_miou, miou_batch
 from inseggan_ros.segment import Segmenter
-from inseggan_ros.superpixels import (depth_superpixels, split_frame, split_labels, vote_frame,
-                                      vote_labels)
+from inseggan_ros.superpixels import (depth_superpixels, frame_segments, split_frame,
+                                      split_labels, vote_frame, vote_labels)
 
 
 def two_blocks():
@@ -131,3 +131,38 @@ def test_the_segmenter_splits_after_the_vote_and_scores_cut_pieces_zero(cylinder
     torch.testing.assert_close(out["labels"], expect)
     assert cut.any(), "the sample bag has frames where the model missed a part"
     assert (out["scores"][cut] == 0).all() and (out["scores"][~cut] > 0).any()
+
+
+def test_segments_made_beforehand_give_the_same_labels_and_are_used_only_where_they_fit():
+    h, truth = three_blocks()
+    lab = truth.copy()
+    lab[lab == 3] = 2  # the third part missed: the split has something to do
+    fg = lab > 0
+    pre = frame_segments(h, fg, 50, 800)
+    assert pre.fine is not None and pre.coarse is not None
+    np.testing.assert_array_equal(vote_frame(lab, h, 3, 50, pre), vote_frame(lab, h, 3, 50))
+    for a, b in zip(split_frame(lab, h, 3, 800, pre), split_frame(lab, h, 3, 800)):
+        np.testing.assert_array_equal(a, b)
+    # segments made for a smaller foreground, or at other scales, are not used
+    other = frame_segments(h, fg & (np.arange(64) < 40)[None], 50, 800)
+    assert other.get(fg, 50, coarse=False) is None and pre.get(fg, 60, coarse=False) is None
+    np.testing.assert_array_equal(vote_frame(lab, h, 3, 50, other), vote_frame(lab, h, 3, 50))
+    # one segment over the whole foreground: the split has no edge to cut along
+    whole = replace(pre, coarse=fg.astype(np.int64))
+    assert np.array_equal(split_frame(lab, h, 3, 800, whole)[0], lab)
+    assert not np.array_equal(split_frame(lab, h, 3, 800)[0], lab)
+
+
+def test_the_superpixel_thread_gives_the_node_path_the_same_labels(cylinder_bag):
+    """`Segmenter(superpixel_thread=True)` on full frames of the sample bag, in and out of
+    turn with the one-thread path: identical labels and scores."""
+    seg, _ = cylinder_bag
+    frames = [f.metres() for f in bags.read_frames(BAGS / "cylinder_sim", limit=4)]
+    cfg = replace(seg.inference, superpixel_scale=50, split_scale=800)
+    threaded = Segmenter(seg.G, seg.E, seg.model_cfg, seg.prep_cfg, seg.tau,
+                         inference=cfg, superpixel_thread=True)
+    for f in frames:
+        a, b = seg(f, reconstruction=False, settings=cfg), threaded(f, reconstruction=False)
+        np.testing.assert_array_equal(a.labels, b.labels)
+        np.testing.assert_array_equal(a.scores, b.scores)
+    assert threaded._pool is not None, "the thread made the segments"

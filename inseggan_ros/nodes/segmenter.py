@@ -98,7 +98,9 @@ class SegmenterNode(Node):
         from ..segment import Segmenter as Model
 
         try:
-            self.model = Model.from_checkpoint(self.model_path, device=device)
+            self.model = Model.from_checkpoint(
+                self.model_path, device=device,
+                superpixel_thread=self.get_parameter("superpixel_thread").value)
         except ValueError as e:  # e.g. cuda asked for but not available
             raise ConfigError(f"parameter device={device!r}: {e}") from None
         self._declare_runtime()
@@ -251,6 +253,10 @@ class SegmenterNode(Node):
             "device": ("auto", d("auto (cuda when available), cpu or cuda", read_only=True)),
             "threads": (1, d("CPU threads for inference (1 leaves the other cores to DDS and "
                              "the rest of the robot)", read_only=True, int_range=(1, 256))),
+            "superpixel_thread": (True, d(
+                "make a frame's depth superpixels (superpixel_scale, split_scale) in a second "
+                "thread while the encoder runs: the same labels, sooner where a second core is "
+                "free", read_only=True)),
             "diagnostics_period": (1.0, d("seconds between /diagnostics messages", read_only=True,
                                           float_range=(0.05, 60.0))),
             "latency_window": (1000, d("frames over which /diagnostics reports latency "

@@ -2,12 +2,14 @@
 frame by frame in one process, so that a shared, noisy machine slows both alike.
 
     python scripts/experiments/ab_inference.py COMMIT [MODEL,MODEL,...] [--frames 12]
+        [--superpixel-thread]
 
 The earlier commit's `inseggan_ros` is extracted (`git archive`) under another package name;
 both segment the same simulated 1280 x 720 RealSense frames of cylinders (`bench_node`'s) on
 one thread, with each model's default settings and the bin found as the node finds it. Prints,
 per model, both medians, the median of the per-frame ratios new / old and whether the labels
-are identical.
+are identical. `--superpixel-thread`: this checkout's segmenter makes the superpixels in a
+second thread, as the node does by default (`superpixel_thread`).
 """
 from __future__ import annotations
 
@@ -44,6 +46,7 @@ def main(argv=None) -> int:
     ap.add_argument("models", nargs="?", default="cylinder")
     ap.add_argument("--frames", type=int, default=12)
     ap.add_argument("--rounds", type=int, default=8)
+    ap.add_argument("--superpixel-thread", action="store_true")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
@@ -64,7 +67,9 @@ def main(argv=None) -> int:
                     "new": (segment.Segmenter, preprocess)}
             segs, preps = {}, {}
             for key, (cls, pre) in runs.items():
-                segs[key] = cls.from_checkpoint(path, device="cpu")
+                extra = {"superpixel_thread": True} if key == "new" and \
+                    args.superpixel_thread else {}
+                segs[key] = cls.from_checkpoint(path, device="cpu", **extra)
                 preps[key] = pre.node_defaults(segs[key].prep_cfg, frames[:pre.BIN_FRAMES])
             ms = {"old": [], "new": []}
             labels = {"old": [], "new": []}
