@@ -325,7 +325,7 @@ def cmd_shape_fit(args) -> int:
     from . import data as data_mod
     from .loop import BagFrames, _model_file, _same_view
     from .preprocess import PreprocessConfig
-    from .shapefit import ShapeFitConfig, fit_shape
+    from .shapefit import ShapeFitConfig, fit_shape, hold_out
 
     cfg = ShapeFitConfig(pieces=args.pieces, walls=args.walls, iterations=args.iterations,
                          frames=args.frames, eval_every=args.eval_every, seed=args.seed,
@@ -335,8 +335,7 @@ def cmd_shape_fit(args) -> int:
     report = None
     if isinstance(frames, BagFrames):
         prep = PreprocessConfig.from_dict(checkpoint.load(file)["preprocess_config"])
-        before = frames.frames(prep)[0]["x"]
-        train_x, val_x = before[:cfg.frames], before[cfg.frames:cfg.frames + cfg.val_frames]
+        train_x, val_x = hold_out(frames.frames(prep)[0]["x"], cfg)
     else:
         _same_view(file, frames)
         train_x = data_mod.load_sim_split(frames, "train", limit=cfg.frames,

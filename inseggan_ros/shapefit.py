@@ -79,6 +79,18 @@ class ShapeFitConfig:
                 raise ValueError(f"{key} {getattr(self, key)!r} invalid; valid: in (0, 1)")
 
 
+def hold_out(frames: np.ndarray, cfg: ShapeFitConfig) -> tuple[np.ndarray, np.ndarray]:
+    """One sequence of the user's frames (a recording's) -> (training frames, validation
+    frames): up to `cfg.frames` to fit and the next `cfg.val_frames` to measure the fit on;
+    where there are fewer than both need, the last fifth (at most `cfg.val_frames`) is
+    held out, so that the kept checkpoint is always the one that reconstructs unseen frames
+    best."""
+    n = len(frames)
+    val = cfg.val_frames if n >= cfg.frames + cfg.val_frames else min(cfg.val_frames, n // 5)
+    train = min(cfg.frames, n - val)
+    return frames[:train], frames[train:train + val]
+
+
 def rod_box(G: SphereGenerator, x=None) -> tuple[float, float, float]:
     """The starting box in the rod's own frame: half-extents (x along the rod's axis, y, z):
     the rod's bounding box, or with frames `x` ((N, 1, H, W) model inputs) as thick (z) as the
@@ -220,9 +232,9 @@ def fit_shape(model, train_x: np.ndarray, out, cfg: ShapeFitConfig = ShapeFitCon
         with open(out / "log.jsonl", "a") as f:
             f.write(json.dumps(rec) + "\n")
         _plot(history, out / "curves.png")
-        tqdm.write(f"iter {it}: " + ", ".join(f"{k} {v}" for k, v in rec.items()
-                                              if k not in ("kind", "iteration"))
-                   + (" (best)" if improved else ""))
+        fields = ", ".join(f"{k} {v}" for k, v in rec.items() if k not in ("kind", "iteration"))
+        if fields:  # nothing to say without validation frames or a true part
+            tqdm.write(f"iter {it}: {fields}" + (" (best)" if improved else ""))
         return improved
 
     if it == 0 and validate():

@@ -12,7 +12,8 @@ from conftest import run_cli
 from inseggan_ros import checkpoint
 from inseggan_ros.model import ConvexGenerator
 from inseggan_ros.segment import Segmenter
-from inseggan_ros.shapefit import ShapeFitConfig, convex_from_rod, fit_shape, rod_box
+from inseggan_ros.shapefit import (ShapeFitConfig, convex_from_rod, fit_shape, hold_out,
+                                   rod_box)
 
 # the wooden block's rod model as the GAN left it (no label of any kind): test_loop's
 MODEL = Path(__file__).resolve().parent / "data" / "wooden_block_unsupervised.pt"
@@ -35,6 +36,21 @@ def test_the_convex_start_is_the_rods_bounding_box_with_its_encoder():
     torch.testing.assert_close(G.pose(z.reshape(6, -1)), rod.pose(z.reshape(6, -1)))
     for k, v in E.state_dict().items():
         torch.testing.assert_close(v, E2.state_dict()[k])
+
+
+def test_a_short_recording_still_holds_frames_out_to_keep_the_best_fit_by():
+    """A recording's frames are one sequence: `frames` to fit, the next `val_frames` to measure
+    the fit on; a recording shorter than both (320 frames of a 400-frame bag, the default 1000
+    + 100) keeps its last fifth for validation instead of validating on nothing."""
+    frames = np.arange(2000)
+    train, val = hold_out(frames, ShapeFitConfig())
+    assert (len(train), len(val), val[0]) == (1000, 100, 1000)
+    train, val = hold_out(frames[:320], ShapeFitConfig())
+    assert (len(train), len(val)) == (256, 64) and val[0] == 256 and val[-1] == 319
+    train, val = hold_out(frames[:320], ShapeFitConfig(frames=100, val_frames=30))
+    assert (len(train), len(val), val[0]) == (100, 30, 100)
+    train, val = hold_out(frames[:4], ShapeFitConfig())
+    assert (len(train), len(val)) == (4, 0)  # too few to spare one: fitted on all, kept last
 
 
 def test_only_a_rod_model_is_a_starting_point():
