@@ -53,6 +53,7 @@ def depth_superpixels(heights: np.ndarray, fg: np.ndarray, scale: float = 200,
 class Segments:
     """A frame's graph segmentations at the vote's and the split's scales (None: that step is
     off), and the foreground they were made for."""
+
     fg: np.ndarray
     scales: tuple[int, int]
     fine: np.ndarray | None
