@@ -284,14 +284,13 @@ class Segmenter:
             raise ValueError("max_height and size are fixed by the model: "
                              f"{self.prep_cfg.max_height} m, {self.prep_cfg.size} px")
         prep = prepare(depth_m, prep_cfg)
-        x64 = np.asarray(prep.x, np.float32)  # the heights segment_batch computes with
         segments = None
         if self.superpixel_thread and (cfg.superpixel_scale > 0 or cfg.split_scale > 0):
             if self._pool is None:
                 self._pool = ThreadPoolExecutor(1, thread_name_prefix="superpixels")
             segments = self._pool.submit(lambda: [frame_segments(
-                x64, prep.fg, cfg.superpixel_scale, cfg.split_scale)])
-        out = self.segment_batch(x64[None, None], fg=prep.fg[None], tau=tau, settings=cfg,
+                prep.x, prep.fg, (cfg.superpixel_scale, cfg.split_scale))])
+        out = self.segment_batch(prep.x[None, None], fg=prep.fg[None], tau=tau, settings=cfg,
                                  segments=segments)
         labels64 = out["labels"][0].cpu().numpy()
         labels = extend_labels(labels_to_full(labels64, prep), depth_m, prep, prep_cfg)

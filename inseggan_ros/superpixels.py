@@ -51,36 +51,27 @@ def depth_superpixels(heights: np.ndarray, fg: np.ndarray, scale: float = 200,
 
 @dataclass(frozen=True)
 class Segments:
-    """A frame's graph segmentations at the vote's and the split's scales (None: that step is
-    off), and the foreground they were made for."""
+    """A frame's graph segmentations by scale, and the foreground they were made for."""
 
     fg: np.ndarray
-    scales: tuple[int, int]
-    fine: np.ndarray | None
-    coarse: np.ndarray | None
+    by_scale: dict[int, np.ndarray]
 
-    def get(self, fg: np.ndarray, scale: int, coarse: bool) -> np.ndarray | None:
-        """The segmentation at `scale` for foreground `fg`, or None if this is not it."""
-        if self.scales[coarse] != scale or not np.array_equal(self.fg, fg):
-            return None
-        return self.coarse if coarse else self.fine
+    def get(self, fg: np.ndarray, scale: int) -> np.ndarray | None:
+        """The segmentation at `scale` for foreground `fg`, or None if there is none."""
+        return self.by_scale.get(scale) if np.array_equal(self.fg, fg) else None
 
 
-def frame_segments(heights: np.ndarray, fg: np.ndarray, superpixel_scale: int,
-                   split_scale: int) -> Segments:
-    """The segmentations `vote_frame` and `split_frame` make of a frame whose labels cover
-    `fg` (the z-buffer's labels cover the input's foreground), made beforehand."""
+def frame_segments(heights: np.ndarray, fg: np.ndarray, scales) -> Segments:
+    """The segmentations `vote_frame` and `split_frame` make at `scales` (0: that step is off)
+    of a frame whose labels cover `fg` (the z-buffer's labels cover the input's foreground),
+    made beforehand."""
     heights, fg = np.asarray(heights, np.float64), np.asarray(fg, bool)
-
-    def segment(scale):
-        return depth_superpixels(heights, fg, scale=scale) if scale > 0 and fg.any() else None
-
-    return Segments(fg.copy(), (superpixel_scale, split_scale), segment(superpixel_scale),
-                    segment(split_scale))
+    wanted = {s for s in scales if s > 0} if fg.any() else set()
+    return Segments(fg.copy(), {s: depth_superpixels(heights, fg, scale=s) for s in wanted})
 
 
-def _segments(pre: Segments | None, heights, fg, scale: int, coarse: bool) -> np.ndarray:
-    seg = pre.get(fg, scale, coarse) if pre is not None else None
+def _segments(pre: Segments | None, heights, fg, scale: int) -> np.ndarray:
+    seg = pre.get(fg, scale) if pre is not None else None
     return depth_superpixels(np.asarray(heights, np.float64), fg, scale=scale) \
         if seg is None else seg
 
@@ -93,7 +84,7 @@ def vote_frame(lab: np.ndarray, heights: np.ndarray, n: int, scale: int,
     fg = lab > 0
     if scale <= 0 or not fg.any():
         return lab
-    seg = _segments(pre, heights, fg, scale, coarse=False)
+    seg = _segments(pre, heights, fg, scale)
     ids = seg[fg]
     counts = np.bincount(ids * (n + 1) + lab[fg], minlength=(seg.max() + 1) * (n + 1))
     counts = counts.reshape(-1, n + 1)  # foreground pixels only: column 0 stays empty
@@ -133,7 +124,7 @@ def split_frame(lab: np.ndarray, heights: np.ndarray, n: int, scale: int,
     if scale <= 0 or not fg.any():
         return lab, changed
     out = lab.astype(np.int64)
-    coarse = _segments(pre, heights, fg, scale, coarse=True)
+    coarse = _segments(pre, heights, fg, scale)
     regions = _connected_regions(out, background=0, connectivity=1)
     pieces = np.unique(coarse * (regions.max() + 1) + regions, return_inverse=True)[1]
     pieces, count = pieces.reshape(lab.shape), pieces.max() + 1

@@ -138,17 +138,17 @@ def test_segments_made_beforehand_give_the_same_labels_and_are_used_only_where_t
     lab = truth.copy()
     lab[lab == 3] = 2  # the third part missed: the split has something to do
     fg = lab > 0
-    pre = frame_segments(h, fg, 50, 800)
-    assert pre.fine is not None and pre.coarse is not None
+    pre = frame_segments(h, fg, (50, 800))
+    assert set(pre.by_scale) == {50, 800}
     np.testing.assert_array_equal(vote_frame(lab, h, 3, 50, pre), vote_frame(lab, h, 3, 50))
     for a, b in zip(split_frame(lab, h, 3, 800, pre), split_frame(lab, h, 3, 800)):
         np.testing.assert_array_equal(a, b)
     # segments made for a smaller foreground, or at other scales, are not used
-    other = frame_segments(h, fg & (np.arange(64) < 40)[None], 50, 800)
-    assert other.get(fg, 50, coarse=False) is None and pre.get(fg, 60, coarse=False) is None
+    other = frame_segments(h, fg & (np.arange(64) < 40)[None], (50, 800))
+    assert other.get(fg, 50) is None and pre.get(fg, 60) is None
     np.testing.assert_array_equal(vote_frame(lab, h, 3, 50, other), vote_frame(lab, h, 3, 50))
     # one segment over the whole foreground: the split has no edge to cut along
-    whole = replace(pre, coarse=fg.astype(np.int64))
+    whole = replace(pre, by_scale={**pre.by_scale, 800: fg.astype(np.int64)})
     assert np.array_equal(split_frame(lab, h, 3, 800, whole)[0], lab)
     assert not np.array_equal(split_frame(lab, h, 3, 800)[0], lab)
 
