@@ -1,8 +1,14 @@
 """A separate rclpy process that subscribes to bin_replay's topics and saves what it receives.
 
-    python receiver.py OUT.npz COUNT TIMEOUT_S [NAMESPACE]
+    python receiver.py OUT.npz COUNT TIMEOUT_S [NAMESPACE] [--labels-optional]
 Saves depth (raw), labels, encodings, stamps, frame_ids and camera K of the first COUNT depth
-frames (with the labels and camera info of the same stamp). Exit 0 when COUNT were received.
+frames whose camera info and labels (of the same stamp) arrived too. Exit 0 when COUNT were
+received.
+
+The three topics are matched one by one when bin_replay starts, and sensor-data QoS drops what a
+subscription was not yet matched for: the first frames may come without their labels or camera
+info. They are skipped rather than saved half. With --labels-optional a frame needs only its
+camera info (a bag whose frames lack labels); its labels are saved where they came.
 """
 import sys
 import time
@@ -15,7 +21,9 @@ from sensor_msgs.msg import CameraInfo, Image
 
 def main():
     out, count, timeout = sys.argv[1], int(sys.argv[2]), float(sys.argv[3])
-    ns = sys.argv[4] if len(sys.argv) > 4 else ""
+    rest = [a for a in sys.argv[4:] if a != "--labels-optional"]
+    ns = rest[0] if rest else ""
+    labels_required = "--labels-optional" not in sys.argv[4:]
     rclpy.init()
     node = rclpy.create_node("test_receiver")
     depth, labels, infos = [], {}, {}
@@ -30,17 +38,21 @@ def main():
     node.create_subscription(CameraInfo, f"{ns}/camera/depth/camera_info",
                              lambda m: infos.__setitem__(key(m), m), qos_profile_sensor_data)
     print("receiver ready", flush=True)
+
+    def whole(m):
+        return key(m) in infos and (key(m) in labels or not labels_required)
+
     t0 = time.monotonic()
-    while len(depth) < count and time.monotonic() - t0 < timeout:
+    frames = []
+    while len(frames) < count and time.monotonic() - t0 < timeout:
         rclpy.spin_once(node, timeout_sec=0.05)
-    frames = depth[:count]
-    # the labels / camera info of those frames travel on their own topics and may come later
-    # than the depth on a loaded machine: wait for them (up to 3 s) rather than a fixed time
-    end = time.monotonic() + 3.0
-    while time.monotonic() < end:
-        rclpy.spin_once(node, timeout_sec=0.05)
-        if all(key(m) in infos and (not labels or key(m) in labels) for m in frames):
-            break
+        frames = [m for m in depth if whole(m)][:count]
+    if not labels_required:
+        # labels travel on their own topic and may come later than the depth on a loaded
+        # machine: wait for them (up to 3 s) rather than a fixed time
+        end = time.monotonic() + 3.0
+        while time.monotonic() < end and not all(key(m) in labels for m in frames):
+            rclpy.spin_once(node, timeout_sec=0.05)
 
     def raw(m):
         dt = {"16UC1": "<u2", "32FC1": "<f4", "mono8": "u1"}[m.encoding]
