@@ -8,7 +8,8 @@ With FRAMES.npz it also publishes those frames itself (raw Image fields: encodin
 height, step, data; one every 0.3 s) to NAMESPACE/camera/depth/image_rect_raw, bad ones included;
 frame 0 (which must be good) is repeated until its labels come back, so that none of the others
 is lost to DDS discovery.
-Stops once COUNT label images arrived (or at TIMEOUT_S) and saves everything keyed by stamp.
+Stops once COUNT label images arrived (or at TIMEOUT_S), waits up to 10 s more for the other
+topics of those stamps, and saves everything keyed by stamp.
 """
 import sys
 import time
@@ -77,8 +78,14 @@ def main():
             pub.publish(m)
             sent += 1
             next_send = time.monotonic() + 0.3
-    end = time.monotonic() + 2.5  # the last frame's extras and one more diagnostics message
-    while time.monotonic() < end:
+    wanted = list(got["labels"])
+
+    def complete():  # those stamps have each kind that came at all (a looping source brings a
+        # frame again whose input or ground truth was lost while discovery settled)
+        return all(s in got[kind] for kind in got if got[kind] for s in wanted)
+
+    t1 = time.monotonic()  # the last frame's extras and one more diagnostics message (2.5 s)
+    while time.monotonic() < t1 + 2.5 or (not complete() and time.monotonic() < t1 + 10.0):
         rclpy.spin_once(node, timeout_sec=0.05)
 
     stamps = sorted(got["labels"])
