@@ -535,3 +535,51 @@ def test_sphere_renders_at_inference_are_those_of_training(floor_contact):
         assert got.shape == (8, 5, size, size)
         torch.testing.assert_close(got, want.detach(), rtol=0, atol=1e-6)
         assert (want > -1).float().mean() > 0.05, "the rods are drawn"
+
+
+@pytest.mark.parametrize("floor_contact", [False, True])
+def test_interpenetration_is_zero_for_rods_apart_and_pushes_overlapping_ones_apart(
+        floor_contact):
+    """`SphereGenerator.interpenetration` (the `separation` prior): zero for rods that do not
+    touch, equal to the brute-force sum for two crossing rods, and a gradient step on it moves
+    the rods apart and lowers it; its spheres are where the renderer draws them (each
+    instance's highest rendered point is the top of its highest sphere)."""
+    from inseggan_ros.model import SphereGenerator
+
+    G = SphereGenerator(ModelConfig(renderer="spheres", composite="zbuffer", spheres=4,
+                                    floor_contact=floor_contact, **SMALL))
+    with torch.no_grad():
+        G.length.fill_(0.4)
+        G.lift.fill_(0.25)
+    _, radii = G.spheres()
+    apart = torch.tensor([[[0, 0, 0, -0.6, 0, 0.0], [0, 0, 0, 0.6, 0, 0.0]]])
+    assert float(G.interpenetration(apart).detach()) == 0.0
+    crossing = torch.tensor([[[0, 0, 0, 0.0, 0, 0.0], [0, 0, math.pi / 2, 0.05, 0.02, 0.05]]],
+                            requires_grad=True)
+    c = G.world_spheres(crossing).detach()
+    r = radii.detach()
+    brute = sum(max(0.0, float(r[a] + r[b] - (c[0, 0, a] - c[0, 1, b]).norm())) ** 2
+                for a in range(4) for b in range(4)) / 4
+    pen = G.interpenetration(crossing)
+    assert float(pen) == pytest.approx(brute, rel=1e-5) and brute > 0
+    pen.backward()
+    with torch.no_grad():
+        moved = crossing - 0.05 * crossing.grad
+        assert float(G.interpenetration(moved)) < float(pen)
+        assert crossing.grad[0, :, 3:].norm() > 0
+        # the spheres' tops are the renders' tops
+        renders = G.render_poses(crossing, size=128)
+        top = ((renders.amax((-1, -2)) + 1) / 2 / (G.cfg.height_gain / 2))[0]
+        want = (c[0, :, :, 2] + r).amax(-1)
+        assert torch.allclose(top, want, atol=0.02)
+    assert G.log_radius.grad is not None  # it reaches the template too
+
+
+def test_separation_needs_the_sphere_rod():
+    from inseggan_ros.train import get_config
+
+    assert get_config("cpu_spheres", separation=1.0).separation == 1.0
+    with pytest.raises(ValueError, match="separation needs the sphere rod"):
+        get_config("cpu_convex", separation=1.0)
+    with pytest.raises(ValueError, match="separation must be"):
+        get_config("cpu_spheres", separation=-1.0)
