@@ -196,6 +196,8 @@ def _load_training_data(args):
 
 
 def cmd_train(args) -> int:
+    from dataclasses import replace
+
     from .train import get_config, torchrun_env, train
 
     cfg = get_config(args.config, nf=args.nf, composite=args.composite,
@@ -208,12 +210,13 @@ def cmd_train(args) -> int:
                      r1_gamma=args.r1_gamma, spectral_norm=args.spectral_norm or None,
                      renderer=args.renderer, lr_template=args.lr_template,
                      compactness=args.compactness, coord_conv=args.coord_conv or None,
-                     separation=args.separation, floor_cut_from_data=args.floor_cut or None,
-                     recon_levels=args.recon_levels,
+                     separation=args.separation, recon_levels=args.recon_levels,
                      background_weight=args.background_weight,
                      real_trains_template=False if args.template_from_gan else None,
                      floor_contact=args.floor_contact or None, spheres=args.spheres)
     train_data, val_data, prep, info = _load_training_data(args)
+    if args.floor_cut:  # the renders cut where the input is: at the preprocessing's min_height
+        cfg = replace(cfg, model=replace(cfg.model, floor_cut=prep.min_height / prep.max_height))
     if val_data.get("labels") is None:
         print("no labels in the validation frames: validation uses the reconstruction error")
     t0 = time.perf_counter()
@@ -394,11 +397,10 @@ def cmd_loop(args) -> int:
         train_cfg = get_config(args.config, spheres=args.spheres, seed=args.train_seed,
                                max_minutes=args.train_minutes,
                                max_iterations=args.train_iterations,
-                               eval_every=args.eval_every, checkpoint_every=args.eval_every,
-                               floor_cut_from_data=args.floor_cut or None)
-    elif args.train_minutes is not None or args.train_iterations is not None or args.floor_cut:
-        raise ValueError("--train-minutes/--train-iterations/--floor-cut learn the shape first: "
-                         "without --model only")
+                               eval_every=args.eval_every, checkpoint_every=args.eval_every)
+    elif args.train_minutes is not None or args.train_iterations is not None:
+        raise ValueError("--train-minutes/--train-iterations learn the shape first: without "
+                         "--model only")
     frames = _bag_or_data(args)
     t0 = time.perf_counter()
     summary = run(args.model, frames, args.out, cfg, progress=not args.quiet,
@@ -901,9 +903,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", default="cpu_spheres",
                    help="without --model: the training config (cpu_spheres)")
     p.add_argument("--spheres", type=int, help="without --model: the rod's sphere count")
-    p.add_argument("--floor-cut", action="store_true",
-                   help="without --model: the rod's heights below the input's min_height render "
-                        "as floor, as the preprocessing makes them (train --floor-cut)")
     p.add_argument("--train-minutes", type=float,
                    help="without --model: the shape's training budget in minutes (the config's "
                         "when neither this nor --train-iterations is given)")

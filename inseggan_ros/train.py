@@ -55,9 +55,6 @@ class TrainConfig:
     recon_levels: int = 1  # L_p and the real-frame loss: L1 over this many pyramid levels
     background_weight: float = 1.0  # real-frame loss: weight of pixels that are floor
     compactness: float = 0.0  # explicit template: weight of its spread (`template_spread`)
-    floor_cut_from_data: bool = False  # explicit templates: renders cut at the data's
-    # min_height as the input is (sets `ModelConfig.floor_cut` to min_height / max_height of the
-    # data's preprocessing when training starts)
     separation: float = 0.0  # sphere rods: weight of the instances' interpenetration
     # (`SphereGenerator.interpenetration`), of the GAN's samples and of the real frames' codes
     template_init: str = "data"  # convex template: start as the box the training frames
@@ -85,8 +82,6 @@ class TrainConfig:
         if self.matching not in losses.MATCHINGS:
             raise ValueError(f"matching {self.matching!r} invalid; valid: "
                              f"{', '.join(losses.MATCHINGS)}")
-        if self.floor_cut_from_data and self.model.renderer == "learned":
-            raise ValueError("floor_cut needs an explicit template (renderer spheres or convex)")
         if self.separation < 0 or not math.isfinite(self.separation):
             raise ValueError(f"separation must be a finite weight >= 0, got {self.separation}")
         if self.separation > 0 and self.model.renderer != "spheres":
@@ -457,9 +452,6 @@ def _train(cfg, train_data, val_data, out, prep_cfg, data_info, device, resume, 
             torch.cuda.set_device(device)
     out = Path(out)
     is_main = rank == 0
-    if cfg.floor_cut_from_data:  # the renders cut where the preprocessing cuts the input
-        cut = float(prep_cfg["min_height"]) / float(prep_cfg["max_height"])
-        cfg = replace(cfg, model=replace(cfg.model, floor_cut=round(cut, 6)))
     seed_everything(cfg.seed + rank)
     run = make_run(cfg, device)
     last = out / "last.pt"

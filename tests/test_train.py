@@ -65,12 +65,9 @@ def test_tiny_training_run_improves_reconstruction(tmp, tiny_data):
 
 
 def test_killed_run_resumes_from_its_last_checkpoint(tmp, tiny_data):
-    """... with the floor cut and the interpenetration prior on: the model's cut is the data's
-    min_height / max_height (0.006 / 0.05), set again the same way on resuming."""
     out = tmp / "run"
-    priors = ["--floor-cut", "--separation", "0.5"]
     args = [str(installed_executable("inseggan")), "train", "--data", str(tiny_data), "--out",
-            str(out), "--iterations", "1000", "--eval-every", "5", *priors, *TINY]
+            str(out), "--iterations", "1000", "--eval-every", "5", *TINY]
     proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         t0 = time.monotonic()
@@ -87,14 +84,9 @@ def test_killed_run_resumes_from_its_last_checkpoint(tmp, tiny_data):
     assert saved >= 10
     assert not [p for p in out.iterdir() if ".tmp" in p.name], "half-written files left"
     p = run_cli("train", "--data", tiny_data, "--out", out, "--iterations", str(saved + 5),
-                "--eval-every", "5", "--resume", *priors, *TINY, timeout=600, check=True)
+                "--eval-every", "5", "--resume", *TINY, timeout=600, check=True)
     assert f"at iteration {saved}" in p.stdout
-    state = checkpoint.load(out / "last.pt")
-    assert state["iteration"] == saved + 5
-    assert state["model_config"]["floor_cut"] == pytest.approx(0.12)
-    assert state["train_config"]["separation"] == 0.5
-    assert Segmenter.from_checkpoint(out / "last.pt", device="cpu").G.cfg.floor_cut == \
-        pytest.approx(0.12)
+    assert checkpoint.load(out / "last.pt")["iteration"] == saved + 5
     # without --resume the run is protected
     p = run_cli("train", "--data", tiny_data, "--out", out, "--iterations", "5", *TINY)
     assert p.returncode == 2 and "--resume" in p.stderr
