@@ -196,8 +196,6 @@ def _load_training_data(args):
 
 
 def cmd_train(args) -> int:
-    from dataclasses import replace
-
     from .train import get_config, torchrun_env, train
 
     cfg = get_config(args.config, nf=args.nf, composite=args.composite,
@@ -215,8 +213,6 @@ def cmd_train(args) -> int:
                      real_trains_template=False if args.template_from_gan else None,
                      floor_contact=args.floor_contact or None, spheres=args.spheres)
     train_data, val_data, prep, info = _load_training_data(args)
-    if args.floor_cut:  # the renders cut where the input is: at the preprocessing's min_height
-        cfg = replace(cfg, model=replace(cfg.model, floor_cut=prep.min_height / prep.max_height))
     if val_data.get("labels") is None:
         print("no labels in the validation frames: validation uses the reconstruction error")
     t0 = time.perf_counter()
@@ -811,9 +807,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--compactness", type=float, help="weight of the template compactness prior")
     p.add_argument("--separation", type=float,
                    help="sphere rods: weight of the instances' interpenetration (0: off)")
-    p.add_argument("--floor-cut", action="store_true",
-                   help="explicit templates: heights below --min-height render as floor, as the "
-                        "preprocessing makes them in the input")
     p.add_argument("--spheres", type=int,
                    help="spheres on the rod template (6): a rod of K spheres is at most about "
                         "K / 2 times as long as it is thick (long thin parts: more)")

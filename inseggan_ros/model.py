@@ -29,7 +29,6 @@ import torch.nn.functional as F
 
 
 RENDERERS = ("learned", "spheres", "convex")
-FLOOR_CUT_SOFTNESS = 0.02  # `cut_floor`'s sigmoid width, image units (0.5 mm at 5 cm = +1)
 RETIRED_FIELDS = ("template_size",)  # ModelConfig fields that old checkpoints may hold
 
 
@@ -56,10 +55,6 @@ class ModelConfig:
     floor_contact: bool = False  # an instance reaching below the floor is lifted until its
     # lowest point touches it (objects lie on the floor or on each other): for "spheres" the
     # lowest sphere, for "convex" the lowest corner
-    floor_cut: float = 0.0  # explicit templates: render heights below this fraction of the
-    # image's full height (+1) as floor (-1), as the preprocessing makes every pixel below its
-    # min_height floor (min_height / max_height; 0 = off): otherwise the input's step at the
-    # foreground's edge is drawn by a larger rod sunk into the floor
     pieces: int = 4  # "convex": convex pieces in the template's union
     walls: int = 4  # "convex": side planes of each piece (besides its top and bottom): 4 make
     # a box, and with each piece's own orientation and tilts a nut's sectors; 8 an octagon
@@ -92,11 +87,6 @@ class ModelConfig:
                              "monotone")
         if not 1 <= self.spheres <= 256:
             raise ValueError(f"spheres must be in 1..256, got {self.spheres}")
-        if not 0.0 <= self.floor_cut < 1.0:
-            raise ValueError(f"floor_cut must be in [0, 1) (min_height / max_height), got "
-                             f"{self.floor_cut}")
-        if self.floor_cut > 0 and self.renderer == "learned":
-            raise ValueError("floor_cut needs an explicit template (renderer spheres or convex)")
         if not 1 <= self.pieces <= 16:
             raise ValueError(f"pieces must be in 1..16, got {self.pieces}")
         if self.walls < 4 or self.walls % 4:
@@ -329,15 +319,6 @@ class TemplateGenerator(PoseGenerator):
         """A compactness measure of the template (its prior in training)."""
         raise NotImplementedError
 
-    def cut_floor(self, x: torch.Tensor) -> torch.Tensor:
-        """Renders in [-1, 1] -> the same with heights below `cfg.floor_cut` of the full height
-        made floor (-1), softly over FLOOR_CUT_SOFTNESS so that the poses and the template keep
-        a gradient there: what the preprocessing does to the input (`preprocess.prepare`)."""
-        if self.cfg.floor_cut <= 0:
-            return x
-        cut = -1.0 + 2.0 * self.cfg.floor_cut
-        return (x + 1) * torch.sigmoid((x - cut) / FLOOR_CUT_SOFTNESS) - 1
-
     def pixel_grid(self, size: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """-> pixel centres x (1, 1, 1, size) and y (1, 1, size, 1) in [-1, 1]."""
         if size is None or size == self.cfg.image_size:
@@ -482,7 +463,7 @@ class SphereGenerator(TemplateGenerator):
             cover = torch.sigmoid_(inside / (2 * r * pixel))
             h = inside.clamp_min_(1e-4).sqrt_().add_(cz).clamp_min_(0).mul_(cover)
         h = h.amax(dim=1)  # (M, H, W): the top of the union of spheres
-        x = self.cut_floor((h * (self.cfg.height_gain / 2)).clamp(0, 1) * 2 - 1)
+        x = (h * (self.cfg.height_gain / 2)).clamp(0, 1) * 2 - 1
         return x.reshape(B, n, *x.shape[1:])
 
 
@@ -639,7 +620,7 @@ class ConvexGenerator(TemplateGenerator):
         px, py = self.pixel_grid(size)
         px, py = px.reshape(-1), py.reshape(-1)
         h = height_map(nw, dw, px, py, temperature=2.0 / px.numel())  # about a pixel
-        x = self.cut_floor((h * (self.cfg.height_gain / 2)).clamp(0, 1) * 2 - 1)
+        x = (h * (self.cfg.height_gain / 2)).clamp(0, 1) * 2 - 1
         return x.reshape(B, n, *x.shape[1:])
 
 

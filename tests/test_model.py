@@ -583,34 +583,3 @@ def test_separation_needs_the_sphere_rod():
         get_config("cpu_convex", separation=1.0)
     with pytest.raises(ValueError, match="separation must be"):
         get_config("cpu_spheres", separation=-1.0)
-
-
-@pytest.mark.parametrize("renderer", ["spheres", "convex"])
-def test_floor_cut_renders_low_heights_as_floor_like_the_preprocessing(renderer):
-    """With `floor_cut` an explicit template's heights below that fraction of the full height
-    render as floor, as `preprocess.prepare` makes every pixel below min_height; higher ones
-    are unchanged, and the gradient still reaches the poses and the template."""
-    from inseggan_ros.model import make_generator
-
-    def gen(cut):
-        torch.manual_seed(0)
-        return make_generator(ModelConfig(renderer=renderer, composite="zbuffer",
-                                          floor_cut=cut, **SMALL))
-
-    plain, cut = gen(0.0), gen(0.12)
-    cut.load_state_dict(plain.state_dict())
-    pose = torch.tensor([[[0.3, 0.2, 0.1, 0.1, -0.1, 0.1]]], requires_grad=True)
-    a, b = plain.render_poses(pose), cut.render_poses(pose)
-    edge = -1 + 2 * 0.12
-    low, high = a < edge - 0.1, a > edge + 0.2
-    assert low.any() and high.any() and (a > -1 + 1e-3)[low].any()  # a sloping edge to cut
-    assert torch.allclose(b[low], torch.full_like(b[low], -1.0), atol=0.01)
-    assert torch.allclose(b[high], a[high], atol=1e-3)
-    b.sum().backward()
-    assert pose.grad.abs().sum() > 0
-    assert any(p.grad is not None and p.grad.abs().sum() > 0
-               for name, p in cut.named_parameters() if name in cut.template_parameters)
-    with pytest.raises(ValueError, match="floor_cut must be in"):
-        ModelConfig(renderer=renderer, composite="zbuffer", floor_cut=1.0, **SMALL)
-    with pytest.raises(ValueError, match="floor_cut needs an explicit template"):
-        ModelConfig(floor_cut=0.1, **SMALL)
