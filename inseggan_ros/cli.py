@@ -208,8 +208,7 @@ def cmd_train(args) -> int:
                      r1_gamma=args.r1_gamma, spectral_norm=args.spectral_norm or None,
                      renderer=args.renderer, lr_template=args.lr_template,
                      compactness=args.compactness, coord_conv=args.coord_conv or None,
-                     separation=args.separation, recon_levels=args.recon_levels,
-                     background_weight=args.background_weight,
+                     recon_levels=args.recon_levels, background_weight=args.background_weight,
                      real_trains_template=False if args.template_from_gan else None,
                      floor_contact=args.floor_contact or None, spheres=args.spheres)
     train_data, val_data, prep, info = _load_training_data(args)
@@ -805,8 +804,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--renderer", choices=["learned", "spheres", "convex"])
     p.add_argument("--lr-template", type=float, help="learning rate of an explicit template")
     p.add_argument("--compactness", type=float, help="weight of the template compactness prior")
-    p.add_argument("--separation", type=float,
-                   help="sphere rods: weight of the instances' interpenetration (0: off)")
     p.add_argument("--spheres", type=int,
                    help="spheres on the rod template (6): a rod of K spheres is at most about "
                         "K / 2 times as long as it is thick (long thin parts: more)")

@@ -389,36 +389,6 @@ class SphereGenerator(TemplateGenerator):
         c, _ = self.spheres()
         return (c ** 2).sum(1).mean()
 
-    def world_spheres(self, pose: torch.Tensor) -> torch.Tensor:
-        """(B, n, 6) poses -> (B, n, K, 3) the posed spheres' centres, as `render_axes` places
-        them (lift and floor contact included); their radii are `spheres()[1]`."""
-        B, n = pose.shape[:2]
-        centres, radii = self.spheres()
-        axis = rodrigues(pose.reshape(B * n, 6)[:, :3])[:, :, 0].reshape(B, n, 1, 3)
-        c = centres[:, 0].view(1, 1, -1, 1) * axis + pose[..., None, 3:]
-        cz = c[..., 2] + self.lift
-        if self.cfg.floor_contact:
-            cz = cz + (radii - cz).amax(dim=-1, keepdim=True).clamp_min(0)
-        return torch.cat([c[..., :2], cz[..., None]], -1)
-
-    def interpenetration(self, pose: torch.Tensor) -> torch.Tensor:
-        """(B, n, 6) poses -> how far the scene's instances pass through one another (a prior
-        in training): for every two instances, the squared overlap depths (r_a + r_b - |c_a -
-        c_b|, where positive) of each sphere of one with each sphere of the other, summed and
-        divided by the spheres per rod; summed over the pairs of instances, averaged over the
-        scenes. Zero when no two rods touch. Rigid parts never pass through each other, but a
-        GAN's instances may, and then a template larger than the part covers the same
-        foreground: the shipped rods' instances overlapped in 36-39 % of pairs (docs/
-        experiments.md)."""
-        c = self.world_spheres(pose)  # (B, n, K, 3)
-        _, radii = self.spheres()
-        B, n, K, _ = c.shape
-        diff = c[:, :, None, :, None] - c[:, None, :, None, :]  # (B, n, n, K, K, 3)
-        dist = (diff.square().sum(-1) + 1e-12).sqrt()
-        depth = (radii.view(K, 1) + radii.view(1, K) - dist).clamp_min(0)
-        pairs = torch.triu(torch.ones(n, n, dtype=torch.bool, device=c.device), diagonal=1)
-        return depth[:, pairs].square().sum((-1, -2, -3)).mean() / K
-
     def alignment_features(self, z: torch.Tensor) -> torch.Tensor:
         """The pose as far as the rod's render depends on it: translation (3) and the axis
         direction up to sign (the 6 distinct entries of a a^T). A d-dimensional code decodes to

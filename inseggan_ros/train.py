@@ -55,8 +55,6 @@ class TrainConfig:
     recon_levels: int = 1  # L_p and the real-frame loss: L1 over this many pyramid levels
     background_weight: float = 1.0  # real-frame loss: weight of pixels that are floor
     compactness: float = 0.0  # explicit template: weight of its spread (`template_spread`)
-    separation: float = 0.0  # sphere rods: weight of the instances' interpenetration
-    # (`SphereGenerator.interpenetration`), of the GAN's samples and of the real frames' codes
     template_init: str = "data"  # convex template: start as the box the training frames
     # suggest ("data", `init_from_data`) or as the generator's fixed default box ("default")
     matching: str = "hungarian"
@@ -82,11 +80,6 @@ class TrainConfig:
         if self.matching not in losses.MATCHINGS:
             raise ValueError(f"matching {self.matching!r} invalid; valid: "
                              f"{', '.join(losses.MATCHINGS)}")
-        if self.separation < 0 or not math.isfinite(self.separation):
-            raise ValueError(f"separation must be a finite weight >= 0, got {self.separation}")
-        if self.separation > 0 and self.model.renderer != "spheres":
-            raise ValueError(f"separation needs the sphere rod (renderer spheres), not "
-                             f"{self.model.renderer!r}; valid: separation 0 for it")
         for name in ("lr_g", "lr_d", "lr_e"):  # lr_template may be 0 (= lr_g)
             if not 0 < getattr(self, name) < 1:
                 raise ValueError(f"{name} must be in (0, 1), got {getattr(self, name)}")
@@ -268,10 +261,6 @@ def train_step(run: Run, real: torch.Tensor, amp: bool = False) -> dict:
     g0 = _unwrap(G)
     if cfg.compactness > 0 and isinstance(g0, TemplateGenerator):
         loss_g = loss_g + cfg.compactness * g0.template_spread()
-    l_sep = torch.zeros(())
-    if cfg.separation > 0:  # rigid parts do not pass through each other
-        l_sep = g0.interpenetration(g0.pose(z.reshape(B * n, d)).reshape(B, n, 6))
-        loss_g = loss_g + cfg.separation * l_sep
     run.opt_g.zero_grad(set_to_none=True)
     loss_g.backward()
     run.opt_g.step()
@@ -304,16 +293,11 @@ def train_step(run: Run, real: torch.Tensor, amp: bool = False) -> dict:
     # data itself; a rigidly posed shared template per code keeps the instances apart
     if cfg.lambda_real > 0 and cfg.real_trains_generator:
         with autocast:
-            codes = E(real)
-            l_r = losses.pyramid_l1(G(codes).float(), real.float(),  # through DDP if distributed
+            l_r = losses.pyramid_l1(G(E(real)).float(), real.float(),  # through DDP if distributed
                                     cfg.recon_levels, cfg.background_weight)
-        loss_r = cfg.lambda_real * l_r
-        if cfg.separation > 0:  # the poses read from real frames too
-            loss_r = loss_r + cfg.separation * g0.interpenetration(
-                g0.pose(codes.reshape(B * n, -1).float()).reshape(B, n, 6))
         run.opt_e.zero_grad(set_to_none=True)
         run.opt_g.zero_grad(set_to_none=True)
-        loss_r.backward()
+        (cfg.lambda_real * l_r).backward()
         if not cfg.real_trains_template:  # the template learns from the GAN alone
             for group in run.opt_g.param_groups[1:]:  # the template's group, if there is one
                 for p in group["params"]:
@@ -321,7 +305,7 @@ def train_step(run: Run, real: torch.Tensor, amp: bool = False) -> dict:
         run.opt_e.step()
         run.opt_g.step()
     return {"loss_d": loss_d.item(), "loss_g": loss_g.item(), "l_a": l_a.item(),
-            "l_i": l_i.item(), "l_p": l_p.item(), "l_real": l_r.item(), "l_sep": l_sep.item()}
+            "l_i": l_i.item(), "l_p": l_p.item(), "l_real": l_r.item()}
 
 
 def guard_divergence(run: Run, stats: dict) -> bool:
