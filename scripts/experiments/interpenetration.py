@@ -4,7 +4,7 @@ its encoder reads the validation frames of the part's data set.
     python scripts/experiments/interpenetration.py MODEL [--data DATA] [--frames 200]
 
 For every two instances of a scene, the deepest overlap of a sphere of one with a sphere of the
-other (`SphereGenerator.world_spheres`), in units of the rod's largest radius; rigid parts never
+other, in units of the rod's largest radius; rigid parts never
 overlap. Prints the share of instance pairs that overlap by more than 5 % of the radius, the mean
 and 90th percentile overlap, the rod's length, largest radius and lift (image units), and the
 spread of the translations.
@@ -16,15 +16,28 @@ import argparse
 import torch
 
 from inseggan_ros.data import load_sim_split
-from inseggan_ros.model import SphereGenerator
+from inseggan_ros.model import SphereGenerator, rodrigues
 from inseggan_ros.nodes.segmenter import resolve_model
 from inseggan_ros.segment import Segmenter
+
+
+def world_spheres(G: SphereGenerator, pose: torch.Tensor) -> torch.Tensor:
+    """(B, n, 6) poses -> (B, n, K, 3) the posed spheres' centres, where `render_axes` draws
+    them (lift and floor contact included)."""
+    B, n = pose.shape[:2]
+    centres, radii = G.spheres()
+    axis = rodrigues(pose.reshape(B * n, 6)[:, :3])[:, :, 0].reshape(B, n, 1, 3)
+    c = centres[:, 0].view(1, 1, -1, 1) * axis + pose[..., None, 3:]
+    cz = c[..., 2] + G.lift
+    if G.cfg.floor_contact:
+        cz = cz + (radii - cz).amax(dim=-1, keepdim=True).clamp_min(0)
+    return torch.cat([c[..., :2], cz[..., None]], -1)
 
 
 def overlaps(G: SphereGenerator, pose: torch.Tensor) -> torch.Tensor:
     """(B, n, 6) poses -> (B, n (n - 1)) deepest sphere overlap of each ordered instance pair,
     divided by the rod's largest radius."""
-    c = G.world_spheres(pose)
+    c = world_spheres(G, pose)
     _, r = G.spheres()
     B, n, K, _ = c.shape
     d = (c[:, :, None, :, None] - c[:, None, :, None, :]).norm(dim=-1)  # (B, n, n, K, K)
