@@ -234,11 +234,22 @@ def fill_missing(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
     labels the valid pixels 1, 2, ... in raster order)."""
     if valid.all():
         return values.copy()
+    return values[valid][_nearest_valid(valid) - 1]
+
+
+def nearest_values(values: np.ndarray, valid: np.ndarray, where: np.ndarray) -> np.ndarray:
+    """`fill_missing(values, valid)[where]` without filling the pixels outside `where`."""
+    if valid.all():
+        return values[where]
+    return values[valid][_nearest_valid(valid)[where] - 1]
+
+
+def _nearest_valid(valid: np.ndarray) -> np.ndarray:
+    """The number (1, 2, ... in raster order) of each pixel's nearest valid pixel."""
     if not valid.any():
         raise ValueError("cannot fill missing pixels: no valid pixel at all")
-    _, nearest = cv2.distanceTransformWithLabels((~valid).view(np.uint8), cv2.DIST_L2, 5,
-                                                 labelType=cv2.DIST_LABEL_PIXEL)
-    return values[valid][nearest - 1]
+    return cv2.distanceTransformWithLabels((~valid).view(np.uint8), cv2.DIST_L2, 5,
+                                           labelType=cv2.DIST_LABEL_PIXEL)[1]
 
 
 @lru_cache(maxsize=16)
@@ -928,7 +939,7 @@ def extend_labels(labels: np.ndarray, depth_m: np.ndarray, prep: Prepared,
                       iterations=side)
     reached |= near.view(bool) & above
     grown = lab.copy()
-    grown[reached] = fill_missing(lab, lab > 0)[reached]  # the nearest labelled pixel's label
+    grown[reached] = nearest_values(lab, lab > 0, reached)  # the nearest labelled pixel's
     out = labels.copy()
     out[Y0:Y1, X0:X1] = grown
     return out

@@ -11,15 +11,17 @@ from .. import image_codec
 from ..bags import CameraInfo as CameraInfoData
 
 
-def image_to_numpy(msg: Image, allowed: tuple[str, ...] | None = None) -> np.ndarray:
-    """Decode an Image (row padding, endianness); raises image_codec.ImageFormatError."""
+def image_to_numpy(msg: Image, allowed: tuple[str, ...] | None = None,
+                   copy: bool = True) -> np.ndarray:
+    """Decode an Image (row padding, endianness); raises image_codec.ImageFormatError.
+    `copy=False`: a view of the message's data where possible (`image_codec.decode`)."""
     return image_codec.decode(msg.height, msg.width, msg.encoding, msg.is_bigendian, msg.step,
-                              msg.data, allowed=allowed)
+                              msg.data, allowed=allowed, copy=copy)
 
 
 def depth_to_metres(msg: Image) -> np.ndarray:
     """Depth Image (16UC1/mono16 millimetres or 32FC1 metres) -> float32 metres, 0 = no reading."""
-    raw = image_to_numpy(msg, allowed=image_codec.DEPTH_ENCODINGS)
+    raw = image_to_numpy(msg, allowed=image_codec.DEPTH_ENCODINGS, copy=False)
     return image_codec.depth_to_metres(raw, msg.encoding)
 
 

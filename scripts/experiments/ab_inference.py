@@ -8,13 +8,14 @@ The earlier commit's `inseggan_ros` is extracted (`git archive`) under another p
 both segment the same simulated 1280 x 720 RealSense frames of cylinders (`bench_node`'s) on
 one thread, with each model's default settings and the bin found as the node finds it. Prints,
 per model, both medians, the median of the per-frame ratios new / old and whether the labels
-are identical. `--superpixel-thread`: this checkout's segmenter makes the superpixels in a
-second thread, as the node does by default (`superpixel_thread`).
+are identical. `--superpixel-thread`: the segmenters make the superpixels in a second thread,
+as the node does by default (`superpixel_thread`), each where its commit can.
 """
 from __future__ import annotations
 
 import argparse
 import importlib
+import inspect
 import subprocess
 import sys
 import tarfile
@@ -67,8 +68,9 @@ def main(argv=None) -> int:
                     "new": (segment.Segmenter, preprocess)}
             segs, preps = {}, {}
             for key, (cls, pre) in runs.items():
-                extra = {"superpixel_thread": True} if key == "new" and \
-                    args.superpixel_thread else {}
+                threaded = args.superpixel_thread and "superpixel_thread" in \
+                    inspect.signature(cls.from_checkpoint).parameters  # both, where both can
+                extra = {"superpixel_thread": True} if threaded else {}
                 segs[key] = cls.from_checkpoint(path, device="cpu", **extra)
                 preps[key] = pre.node_defaults(segs[key].prep_cfg, frames[:pre.BIN_FRAMES])
             ms = {"old": [], "new": []}
