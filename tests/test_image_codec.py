@@ -22,6 +22,22 @@ def test_row_padding_is_skipped():
     np.testing.assert_array_equal(decode(3, 4, "16UC1", 0, 16, padded.tobytes()), a)
 
 
+def test_without_copy_a_frame_is_a_view_where_it_can_be():
+    a = np.arange(12, dtype=np.uint16).reshape(3, 4)
+    data = bytearray(a.tobytes())
+    view = decode(3, 4, "16UC1", 0, 8, data, copy=False)
+    np.testing.assert_array_equal(view, a)
+    data[0] = 7  # the view sees the message's bytes; the default copy does not
+    assert view[0, 0] == 7 and decode(3, 4, "16UC1", 0, 8, bytes(8) * 3)[0, 0] == 0
+    copied = decode(3, 4, "16UC1", 0, 8, data)
+    data[0] = 9
+    assert copied[0, 0] == 7
+    # padded rows and the other byte order cannot be viewed: still right, as a copy
+    swapped = decode(1, 2, "32FC1", 1, 8, np.array([[1.5, -2.25]], ">f4").tobytes(), copy=False)
+    assert swapped.dtype.byteorder in "=<|"
+    np.testing.assert_array_equal(swapped, [[1.5, -2.25]])
+
+
 def test_big_endian_is_swapped():
     a = np.array([[1.5, -2.25]], np.float32)
     out = decode(1, 2, "32FC1", 1, 8, a.astype(">f4").tobytes())

@@ -6,8 +6,8 @@ import pytest
 from scipy import ndimage
 
 from inseggan_ros.preprocess import (PreprocessConfig, estimate_floor, extend_labels,
-                                     fill_missing, find_bin_roi, labels_to_full, prepare,
-                                     prepare_batch, resize_labels, roi_from_camera)
+                                     fill_missing, find_bin_roi, labels_to_full, nearest_values,
+                                     prepare, prepare_batch, resize_labels, roi_from_camera)
 from inseggan_ros.sim.camera import get_camera
 from inseggan_ros.sim.noise import get_noise
 from inseggan_ros.sim.scene import BinSimulator, SceneConfig
@@ -243,6 +243,19 @@ def test_fill_missing_takes_the_nearest_valid_pixel():
     for r, c in zip(*np.nonzero(~valid)):
         src = np.argwhere(valid & (values == filled[r, c]))
         assert np.hypot(*(src - (r, c)).T).min() <= dist[r, c] * 1.1 + 0.5
+
+
+def test_nearest_values_are_the_filled_values_where_asked():
+    rng = np.random.default_rng(3)
+    values = rng.integers(1, 6, (30, 40)).astype(np.uint8)
+    valid = rng.random((30, 40)) < 0.2
+    where = rng.random((30, 40)) < 0.5
+    np.testing.assert_array_equal(nearest_values(values, valid, where),
+                                  fill_missing(values, valid)[where])
+    np.testing.assert_array_equal(nearest_values(values, np.ones_like(valid), where),
+                                  values[where])
+    with pytest.raises(ValueError, match="no valid pixel"):
+        nearest_values(values, np.zeros_like(valid), where)
 
 
 def test_floor_estimate_ignores_objects_and_stray_far_pixels():

@@ -75,8 +75,9 @@ def main(argv=None) -> int:
             for k, v in held.items()}
     base = evaluate.run_methods(test, n, None, ["kmeans", "felzenszwalb"], progress=False)
     subsets = {k: m for k, (_, m) in evaluate.hard_subsets(base, len(test["x"])).items()}
+    sizes = ", ".join(f"{k} {int(m.sum())}" for k, m in subsets.items())
     print(f"{len(calib['x'])} calibration and {len(held['x'])} held-out frames of the "
-          f"recording; {len(test['x'])} test frames ({', '.join(f'{k} {int(m.sum())}' for k, m in subsets.items())})")
+          f"recording; {len(test['x'])} test frames ({sizes})")
     for name, r in base.items():
         print(f"  {name}: all {mean_miou(r['scores']):.3f} / "
               + " / ".join(f"{k} {mean_miou(r['scores'][m]):.3f}" for k, m in subsets.items()))
