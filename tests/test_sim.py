@@ -155,13 +155,41 @@ def test_bad_configs_are_rejected_clearly():
 
 
 def test_parts_that_do_not_fit_the_bin_are_named_not_crashed_on():
-    """Twenty blocks in a 31 mm bin with 5 mm walls: the scene is given up with an error that
-    names the part's size and the bin's (a ValueError, so the command line prints one line;
-    `inseggan loop` meets it when a learned shape is still far too large)."""
+    """Twenty blocks dropped anywhere over a 31 mm bin with 5 mm walls: every pile loses a
+    part, and the scene is given up with an error that names the part's size and the bin's (a
+    ValueError, so the command line prints one line; `inseggan loop` meets it when a learned
+    shape is still far too large)."""
     from inseggan_ros.sim.scene import BinConfig, PileError
 
-    cfg = SceneConfig(object="wooden_block", instances=20,
+    cfg = SceneConfig(object="wooden_block", instances=20, drop_spread=1.0,
                       bin=BinConfig(inner_size=(0.031, 0.031), wall_height=0.005))
-    want = r"fell out of the 31 x 31 mm bin in 5 drops; valid: a part that fits"
+    want = (r"fell out of the 31 x 31 mm bin in 5 drops, in each of 4 piles started afresh; "
+            "valid: a part that fits")
     with BinSimulator(cfg) as sim, pytest.raises(PileError, match=want):
         sim.render(0)
+
+
+def test_a_pile_that_loses_a_part_is_piled_again_not_given_up(monkeypatch):
+    """A part that fits the bin still bounces out now and then (a large learned part about once
+    in a thousand scenes); the scene is then piled again from a seed derived from its own, so
+    that one unlucky scene does not stop a data set. Here the bin check is made to fail every
+    drop of the first pile (as a part that bounced out five times), then pass."""
+    from inseggan_ros.sim.scene import DROPS
+
+    cfg = SceneConfig(object="cylinder", instances=3)
+    with BinSimulator(cfg) as sim:
+        first = sim.render(5)
+        assert sim.last_piles == 1
+        real, calls = BinSimulator._inside_bin, []
+
+        def unlucky(self, body):
+            calls.append(body)
+            return len(calls) > DROPS and real(self, body)
+
+        monkeypatch.setattr(BinSimulator, "_inside_bin", unlucky)
+        again = sim.render(5)
+        assert sim.last_piles == 2 and len(calls) >= DROPS + cfg.instances
+        assert set(np.unique(again.labels)) == {0, 1, 2, 3}  # every part in the bin and seen
+        assert not np.array_equal(again.depth, first.depth)  # another pile, not the seed's
+        monkeypatch.undo()
+        np.testing.assert_array_equal(sim.render(5).depth, first.depth)  # deterministic
