@@ -134,6 +134,9 @@ def cmd_simulate(args) -> int:
     print(f"  {meta['scenes_per_second']:.1f} scenes/s with {args.workers} worker(s), "
           f"{time.perf_counter() - t0:.1f} s in all, {size / 1e6:.1f} MB on disk"
           + (f", bags: {', '.join(meta['bags'].values())}" if meta["bags"] else ""))
+    if meta["repiled_scenes"]:
+        print(f"  {meta['repiled_scenes']} scene(s) piled again: a part bounced out of the bin "
+              "in every drop of the seed's own pile")
     return 0
 
 

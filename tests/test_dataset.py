@@ -19,6 +19,7 @@ def test_simulate_splits_shards_and_bags(tmp):
     assert meta["counts"] == {"train": 12, "val": 4, "test": 4}
     assert [s["scenes"] for s in meta["shards"]["train"]] == [5, 5, 2]
     assert meta["scene"]["object"] == "stopper"
+    assert meta["repiled_scenes"] == 0 and "piled again" not in p.stdout
     test = list(iter_scenes(out, "test"))
     assert len(test) == 4
     # scene i of a split is scene_seed(seed, split, i), whatever the worker that made it

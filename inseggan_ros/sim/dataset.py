@@ -77,12 +77,15 @@ def _init_worker(scene_cfg: dict) -> None:
     _SIM = BinSimulator(SceneConfig.from_dict(scene_cfg))
 
 
-def _make_shard(task: tuple) -> tuple[str, str, int, float]:
+def _make_shard(task: tuple) -> tuple[str, str, int, int]:
+    """-> (split, file name, scenes, scenes that had to be piled again)."""
     split, name, seeds, out_dir = task
-    t0 = time.perf_counter()
-    scenes = [_SIM.render(s) for s in seeds]
+    scenes, repiled = [], 0
+    for s in seeds:
+        scenes.append(_SIM.render(s))
+        repiled += int(_SIM.last_piles > 1)
     save_shard(Path(out_dir) / split / name, scenes)
-    return split, name, len(scenes), time.perf_counter() - t0
+    return split, name, len(scenes), repiled
 
 
 def save_shard(path: Path, scenes: list[Scene]) -> None:
@@ -121,17 +124,21 @@ def generate(spec: DatasetSpec, out: Path, workers: int = 1, bags: bool = False,
         total = sum(len(t[2]) for t in tasks)
         t0 = time.perf_counter()
         shards = {s: [] for s in SPLITS}
+        repiled = 0
         with ProcessPoolExecutor(workers, initializer=_init_worker,
                                  initargs=(spec.scene.to_dict(),)) as pool, \
                 tqdm(total=total, unit="scene", desc="simulating", disable=not progress) as bar:
-            for split, name, n, _ in pool.map(_make_shard, tasks):
+            for split, name, n, again in pool.map(_make_shard, tasks):
                 shards[split].append({"file": f"{split}/{name}", "scenes": n})
+                repiled += again
                 bar.update(n)
         sim_seconds = time.perf_counter() - t0
         meta = {"format": FORMAT, "scene": spec.scene.to_dict(), "seed": spec.seed,
                 "counts": {s: spec.counts.get(s, 0) for s in SPLITS}, "shards": shards,
                 "workers": workers, "simulation_seconds": round(sim_seconds, 2),
-                "scenes_per_second": round(total / sim_seconds, 2), "bags": {}}
+                "scenes_per_second": round(total / sim_seconds, 2),
+                "repiled_scenes": repiled,  # a part bounced out of the first pile (sim.scene)
+                "bags": {}}
         if bags:
             for split in SPLITS:
                 if spec.counts.get(split, 0):
