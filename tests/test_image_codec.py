@@ -28,7 +28,7 @@ def test_without_copy_a_frame_is_a_view_where_it_can_be():
     view = decode(3, 4, "16UC1", 0, 8, data, copy=False)
     np.testing.assert_array_equal(view, a)
     data[0] = 7  # the view sees the message's bytes; the default copy does not
-    assert view[0, 0] == 7 and decode(3, 4, "16UC1", 0, 8, bytes(8) * 3)[0, 0] == 0
+    assert view[0, 0] == 7
     copied = decode(3, 4, "16UC1", 0, 8, data)
     data[0] = 9
     assert copied[0, 0] == 7

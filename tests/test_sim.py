@@ -170,10 +170,11 @@ def test_parts_that_do_not_fit_the_bin_are_named_not_crashed_on():
 
 
 def test_a_pile_that_loses_a_part_is_piled_again_not_given_up(monkeypatch):
-    """A part that fits the bin still bounces out now and then (a large learned part about once
-    in a thousand scenes); the scene is then piled again from a seed derived from its own, so
-    that one unlucky scene does not stop a data set. Here the bin check is made to fail every
-    drop of the first pile (as a part that bounced out five times), then pass."""
+    """A part that fits the bin still bounces out now and then (a large learned part: one scene
+    in 150 of the tilted recording's young rod); the scene is then piled again from a seed
+    derived from its own, so that one unlucky scene does not stop a data set. Here the bin
+    check is made to fail every drop of the first pile (as a part that bounced out five
+    times), then pass."""
     from inseggan_ros.sim.scene import DROPS
 
     cfg = SceneConfig(object="cylinder", instances=3)

@@ -23,8 +23,8 @@ from .objects import ObjectSpec, get_object
 
 DROPS = 5  # tries to drop each part into the bin before the pile is started again
 # Piles started from scratch (each from a seed derived from the scene's) before the scene is
-# given up: a part that fits the bin still falls out now and then (a large learned part, about
-# once in a thousand scenes), and one such scene must not stop a data set of thousands.
+# given up: a part that fits the bin still falls out now and then (more often the larger it is),
+# and one such scene must not stop a data set of thousands.
 PILES = 4
 
 
