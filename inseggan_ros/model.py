@@ -406,6 +406,20 @@ class SphereGenerator(TemplateGenerator):
         axis = rodrigues(pose.reshape(B * n, 6)[:, :3])[:, :, 0].reshape(B, n, 3)
         return self.render_axes(axis, pose[..., 3:], size, template)
 
+    def posed_centres(self, axis: torch.Tensor, t: torch.Tensor,
+                      template: tuple[torch.Tensor, torch.Tensor]
+                      ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, n, 3) unit axes and translations, `spheres()` -> where the posed spheres lie:
+        centres (B n, K, 3) before the lift, and their heights (B n, K) with the lift and the
+        floor contact, as `render_axes` draws them."""
+        B, n = axis.shape[:2]
+        centres, radii = template
+        c = centres[:, 0, None] * axis.reshape(B * n, 1, 3) + t.reshape(B * n, 1, 3)  # (M, K, 3)
+        cz = c[..., 2] + self.lift  # (M, K)
+        if self.cfg.floor_contact:  # lowest point of the instance at or above the floor
+            cz = cz + (radii - cz).amax(dim=1, keepdim=True).clamp_min(0)
+        return c, cz
+
     def render_axes(self, axis: torch.Tensor, t: torch.Tensor, size: int | None = None,
                     template: tuple[torch.Tensor, torch.Tensor] | None = None,
                     grid: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
@@ -414,12 +428,9 @@ class SphereGenerator(TemplateGenerator):
         of revolution about that axis, so a rotation about it changes nothing and the axis is
         all of the rotation that a render depends on. `grid`: `pixel_grid(size)`."""
         B, n = axis.shape[:2]
-        centres, radii = self.spheres() if template is None else template
-        c = centres[:, 0, None] * axis.reshape(B * n, 1, 3) + t.reshape(B * n, 1, 3)  # (M, K, 3)
-        r = radii.view(1, -1, 1, 1)
-        cz = c[..., 2] + self.lift  # (M, K)
-        if self.cfg.floor_contact:  # lowest point of the instance at or above the floor
-            cz = cz + (radii - cz).amax(dim=1, keepdim=True).clamp_min(0)
+        template = self.spheres() if template is None else template
+        c, cz = self.posed_centres(axis, t, template)
+        r = template[1].view(1, -1, 1, 1)
         cx, cy, cz = c[..., 0, None, None], c[..., 1, None, None], cz[..., None, None]
         px, py = self.pixel_grid(size) if grid is None else grid
         pixel = 2.0 / px.shape[-1]

@@ -23,15 +23,11 @@ from inseggan_ros.segment import Segmenter
 
 def world_spheres(G: SphereGenerator, pose: torch.Tensor) -> torch.Tensor:
     """(B, n, 6) poses -> (B, n, K, 3) the posed spheres' centres, where `render_axes` draws
-    them (lift and floor contact included)."""
+    them (lift and floor contact included: `SphereGenerator.posed_centres`)."""
     B, n = pose.shape[:2]
-    centres, radii = G.spheres()
-    axis = rodrigues(pose.reshape(B * n, 6)[:, :3])[:, :, 0].reshape(B, n, 1, 3)
-    c = centres[:, 0].view(1, 1, -1, 1) * axis + pose[..., None, 3:]
-    cz = c[..., 2] + G.lift
-    if G.cfg.floor_contact:
-        cz = cz + (radii - cz).amax(dim=-1, keepdim=True).clamp_min(0)
-    return torch.cat([c[..., :2], cz[..., None]], -1)
+    axis = rodrigues(pose.reshape(B * n, 6)[:, :3])[:, :, 0].reshape(B, n, 3)
+    c, cz = G.posed_centres(axis, pose[..., 3:], G.spheres())
+    return torch.cat([c[..., :2], cz[..., None]], -1).reshape(B, n, -1, 3)
 
 
 def overlaps(G: SphereGenerator, pose: torch.Tensor) -> torch.Tensor:
