@@ -387,7 +387,8 @@ def cmd_loop(args) -> int:
                      lr=args.lr, seed=args.seed, workers=args.workers, name=args.name,
                      user_weight=args.user_weight, head_iterations=args.head_iterations,
                      self_frames=args.self_frames, self_iterations=args.self_iterations,
-                     self_settings=args.self_settings, export_settings=args.export_settings)
+                     self_settings=args.self_settings, export_settings=args.export_settings,
+                     size_by_thickness=args.size_by_thickness, size_rounds=args.size_rounds)
     train_cfg = None
     if args.model is None:
         from .train import get_config
@@ -409,6 +410,14 @@ def cmd_loop(args) -> int:
           + f"); encoder validation mIoU on the simulated scenes {enc['val'][0]['miou']:.3f} -> "
           f"{enc['best_score']:.3f}; model: {args.out}/model (tau {summary['tau']:.2f}), "
           f"card {summary['card']}")
+    if "size" in summary:
+        size = summary["size"]
+        print("rod sized to the frames' thickness, {:.1f} mm: {} -> {} mm".format(
+            size["thickness_mm"], " x ".join(f"{v:.1f}" for v in size["dimensions_mm_before"]),
+            " x ".join(f"{v:.1f}" for v in size["dimensions_mm_after"])))
+    if summary.get("size_rounds"):
+        print("template scales chosen by the frames' reconstruction, round by round: "
+              + ", ".join(f"{r['scale']:g}" for r in summary["size_rounds"]))
     return 0
 
 
@@ -931,6 +940,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--export-settings", default="realtime",
                    help="the exported model's own settings, as the node and its card use "
                         "them (realtime)")
+    p.add_argument("--size-by-thickness", action="store_true",
+                   help="before the first simulation, resize the rod to the thickness of the "
+                        "parts in the user's frames (no label read; measured: "
+                        "docs/experiments.md, 2026-11-27, day)")
+    p.add_argument("--size-rounds", type=int, default=0,
+                   help="after the encoder, up to N rounds of: the rod's scale chosen by how "
+                        "well it explains the user's frames, and where it is not 1, the "
+                        "simulation and the encoder again at that scale (0, the default: none)")
     p.add_argument("--name", default="model", help="the exported model's name")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_loop)

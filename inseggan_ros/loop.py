@@ -26,10 +26,15 @@ resumes from its last checkpoint; the export writes its folder atomically):
   0. shape (only without `--model`): `train.train` on the data set's training frames (no labels;
      validation by reconstruction when the data set has none) into out/shape, for the training
      config's budget; a killed run resumes from out/shape/last.pt; its best.pt is the model;
+  0b. size (only with `size_by_thickness`): a rod resized to the thickness the user's
+     frames show (`sizing`) -> out/size/model.pt;
   1. simulate: `--scenes` labelled scenes of the learned part, with the camera, noise, bin and
      number of instances of the user's data set (its meta.json) or bag;
   2. encoder: the model's encoder fitted to them (`distill.DistillConfig` with the label losses),
      with `--user-weight`, while also reconstructing the user's own unlabelled training frames;
+  2b. size rounds (only with `size_rounds`): the rod's scale chosen by how well it explains
+     the user's frames (`sizing.choose_scale`; out/size_round<k>/scale.json); where it is not
+     1, stages 1 and 2 again from the scaled model, into out/size_round<k>/sim and encoder;
   3. head (only with `head_iterations`): a label head (`label_head.py`) taught on the same
      piles to correct the z-buffer's labels; the model with it is out/head/model.pt;
   4. self (only with `self_frames`): the encoder fitted further to the model's own labels, at
@@ -81,6 +86,12 @@ class LoopConfig:
     self_settings: str = "quality"  # the settings those labels are made with
     export_settings: str = "realtime"  # the shipped model's own settings (what the node and
     # the card use), over those of the checkpoint
+    size_by_thickness: bool = False  # a rod resized, before the first simulation, to the
+    # thickness the user's frames show (`sizing.frame_thickness`)
+    size_rounds: int = 0  # after the encoder, up to this many rounds of: the rod's scale chosen
+    # by how well it explains the user's frames (`sizing.choose_scale`), and where it is not
+    # 1, the simulation and the encoder again at that scale (0 = none)
+    size_frames: int = 280  # of the user's frames for those two (not the card's)
 
     def __post_init__(self):
         if self.self_frames < 0:
@@ -90,6 +101,11 @@ class LoopConfig:
                     "self_iterations"):
             if getattr(self, key) < 1:
                 raise ValueError(f"{key} {getattr(self, key)!r} invalid; valid: >= 1")
+        if self.size_rounds < 0:
+            raise ValueError(f"size_rounds {self.size_rounds!r} invalid; valid: >= 0 (0 = the "
+                             "template's size as learned)")
+        if self.size_frames < 20:
+            raise ValueError(f"size_frames {self.size_frames!r} invalid; valid: >= 20")
         if self.head_iterations < 0:
             raise ValueError(f"head_iterations {self.head_iterations!r} invalid; valid: >= 0 "
                              "(0 = no label head)")
@@ -322,17 +338,125 @@ def run_self_fit(model, data, out, cfg: LoopConfig, progress: bool = True) -> di
     return summary
 
 
+def _simulate_and_fit(file: Path, data, meta: dict | None, view: dict, sim: Path,
+                      encoder: Path, cfg: LoopConfig, seconds: dict, tag: str,
+                      progress: bool) -> Path:
+    """Stages 1 and 2 for the template of `file`: `cfg.scenes` labelled piles of it into `sim`,
+    then its encoder fitted to them into `encoder` -> encoder/best.pt. Each is skipped when
+    its result is complete (`meta` None: the user's frames are a bag, `data`)."""
+    from . import data as data_mod
+    from .distill import DistillConfig, distill
+    from .sim.dataset import DatasetSpec, generate
+    from .sim.scene import SceneConfig
+
+    t0 = time.monotonic()
+    if not (sim / "meta.json").is_file():
+        scene = (SceneConfig.from_dict({**meta["scene"], "object": str(file)}) if meta
+                 is not None else data.scene(file))
+        spec = DatasetSpec(scene, {"train": cfg.scenes, "val": cfg.val_scenes, "test": 0},
+                           seed=cfg.seed)
+        generate(spec, sim, workers=cfg.workers, progress=progress)
+    seconds["simulate" + tag] = round(time.monotonic() - t0, 1)
+
+    t0 = time.monotonic()
+    if not (encoder / "summary.json").is_file():
+        train = data_mod.load_sim_split(sim, "train", progress=progress, **view)
+        val = data_mod.load_sim_split(sim, "val", limit=100, **view)
+        dcfg = DistillConfig(frames=cfg.scenes, iterations=cfg.iterations, lr=cfg.lr,
+                             lr_schedule="cosine",
+                             eval_every=max(1, min(500, cfg.iterations)), lambda_pose=0.0,
+                             lambda_label=cfg.label_weight,
+                             lambda_ownership=cfg.ownership_weight,
+                             lambda_user=cfg.user_weight, seed=cfg.seed)
+        user = None  # the user's frames, not their labels
+        if cfg.user_weight > 0:
+            user = (data_mod.load_sim_split(data, "train", limit=cfg.user_frames,
+                                            progress=progress)["x"] if meta is not None
+                    else data.frames(view["cfg"])[0]["x"][:cfg.user_frames])
+        distill(file, train["x"], val, encoder, dcfg, resume=True, progress=progress,
+                train_labels=train["labels"], user_x=user)
+    seconds["encoder" + tag] = round(time.monotonic() - t0, 1)
+    return encoder / "best.pt"
+
+
+def _user_frames(data, prep, split: str, limit: int) -> dict:
+    """Up to `limit` of the user's frames that are not the card's, spread evenly: a bag's
+    frames before its held-out cut, or a data set's `split`."""
+    from . import data as data_mod
+
+    if isinstance(data, BagFrames):
+        return data.frames(prep, limit=limit)[0]
+    return data_mod.load_sim_split(data, split, prep, limit=limit)
+
+
+def size_stage(file: Path, data, out: Path, cfg: LoopConfig) -> Path:
+    """Stage 0b: the rod of `file` resized to the thickness of the parts in the user's frames
+    (`sizing.frame_thickness` on a bag's frames before its cut, or a data set's training
+    split; no label read) -> out/model.pt, with out/size.json. Skipped when both exist."""
+    from . import checkpoint, sizing
+    from .preprocess import PreprocessConfig
+    from .sim.learned import model_camera, template_scale
+
+    if (out / "model.pt").is_file() and (out / "size.json").is_file():
+        return out / "model.pt"
+    state = checkpoint.load(file)
+    G = checkpoint.build_models(state, file)[1]
+    prep = PreprocessConfig.from_dict(state["preprocess_config"])
+    frames = _user_frames(data, prep, "train", cfg.size_frames)
+    thickness = sizing.frame_thickness(frames["x"], frames["fg"], prep.max_height)
+    camera = model_camera(file, state)
+    metres = template_scale(state, G, camera)
+    before = sizing.rod_dimensions_mm(G, metres)
+    s = sizing.size_to_thickness(state, G, float(metres[2]), thickness)
+    G = checkpoint.build_models(state, file)[1]
+    after = sizing.rod_dimensions_mm(G, template_scale(state, G, camera))
+    out.mkdir(parents=True, exist_ok=True)
+    checkpoint.save(out / "model.pt", state)
+    write_json(out / "size.json", {
+        "model": str(file), "frames": int(len(frames["x"])), "thickness_mm": thickness * 1000,
+        "scale": s, "dimensions_mm_before": before, "dimensions_mm_after": after})
+    return out / "model.pt"
+
+
+def scale_check(file: Path, data, out: Path, cfg: LoopConfig) -> dict:
+    """Stage 2b: the scale of the rod of `file`, at the settings it will ship with, that
+    explains the user's frames best (`sizing.choose_scale`: tau calibrated on some of them,
+    the error measured on others, none of them the card's; no label read) -> out/scale.json;
+    where the scale is not 1, out/start.pt is `file` at that scale. Skipped when done."""
+    from . import checkpoint, settings, sizing
+    from .paths import resolve_config
+    from .segment import Segmenter
+
+    if (out / "scale.json").is_file():
+        return json.loads((out / "scale.json").read_text())
+    seg = Segmenter.from_checkpoint(file, device="cpu")
+    seg.inference = settings.apply(seg.inference,
+                                   settings.read_params_file(resolve_config(cfg.export_settings)))
+    frames = _user_frames(data, seg.prep_cfg, "val", cfg.size_frames)
+    held = max(1, len(frames["x"]) * 2 // 7)  # 80 of 280
+    calib = {k: frames[k][:-held] for k in ("x", "fg")}
+    test = {k: frames[k][-held:] for k in ("x", "fg")}
+    scale, rows = sizing.choose_scale(seg, calib, test)
+    chosen = {"model": str(file), "scale": scale, "calibration_frames": len(calib["x"]),
+              "held_out_frames": held, "rows": rows}
+    out.mkdir(parents=True, exist_ok=True)
+    if scale != 1.0:
+        state = checkpoint.load(file)
+        sizing.scale_state(state, scale)
+        checkpoint.save(out / "start.pt", state)
+        chosen["start"] = str(out / "start.pt")
+    write_json(out / "scale.json", chosen)
+    return chosen
+
+
 def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
         train_cfg=None) -> dict:
     """The loop for `model` (its learned template) and the user's frames `data` (a data set's
     folder, or `BagFrames`) -> summary (also out/summary.json). With `model` None the shape is
     learned first with `train_cfg`."""
     from . import checkpoint
-    from . import data as data_mod
-    from .distill import DistillConfig, distill
     from .preprocess import PreprocessConfig
-    from .sim.dataset import DatasetSpec, generate, load_meta
-    from .sim.scene import SceneConfig
+    from .sim.dataset import load_meta
 
     if (model is None) == (train_cfg is None):
         raise ValueError("give a trained model, or a training config to learn the shape with "
@@ -345,6 +469,7 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
     if cfg.self_frames:
         check_settings(cfg.self_settings)
     bag = data if isinstance(data, BagFrames) else None
+    meta = None  # a data set's meta.json (None: the frames are a bag's)
     if bag is None:
         meta = load_meta(data)  # raises with what is wrong
     else:
@@ -355,7 +480,8 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
     out.mkdir(parents=True, exist_ok=True)
     seconds: dict[str, float] = {}
     stages = tqdm(total=(3 if model is not None else 4) + bool(cfg.head_iterations)
-                  + bool(cfg.self_frames), desc="loop", unit="stage", disable=not progress,
+                  + bool(cfg.self_frames) + bool(cfg.size_by_thickness) + cfg.size_rounds,
+                  desc="loop", unit="stage", disable=not progress,
                   position=0)
     if model is None:
         t0 = time.monotonic()
@@ -370,39 +496,30 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
         view = {"cfg": PreprocessConfig.from_dict(checkpoint.load(file)["preprocess_config"]),
                 "as_given": True}
 
-    t0 = time.monotonic()
-    sim = out / "sim"
-    if not (sim / "meta.json").is_file():
-        scene = (SceneConfig.from_dict({**meta["scene"], "object": str(file)}) if bag is None
-                 else bag.scene(file))
-        spec = DatasetSpec(scene, {"train": cfg.scenes, "val": cfg.val_scenes, "test": 0},
-                           seed=cfg.seed)
-        generate(spec, sim, workers=cfg.workers, progress=progress)
-    seconds["simulate"] = round(time.monotonic() - t0, 1)
-    stages.update(1)
+    if cfg.size_by_thickness:
+        t0 = time.monotonic()
+        file = size_stage(file, data, out / "size", cfg)
+        seconds["size"] = round(time.monotonic() - t0, 1)
+        stages.update(1)
+    sim, encoder = out / "sim", out / "encoder"
+    finished = _simulate_and_fit(file, data, meta, view, sim, encoder, cfg, seconds, "",
+                                 progress)
+    stages.update(2)
+    rounds = []
+    for k in range(1, cfg.size_rounds + 1):
+        t0 = time.monotonic()
+        chosen = scale_check(finished, data, out / f"size_round{k}", cfg)
+        seconds[f"scale{k}"] = round(time.monotonic() - t0, 1)
+        rounds.append(chosen)
+        stages.update(1)
+        if chosen["scale"] == 1.0:
+            break
+        stages.total += 2
+        sim, encoder = out / f"size_round{k}" / "sim", out / f"size_round{k}" / "encoder"
+        finished = _simulate_and_fit(Path(chosen["start"]), data, meta, view, sim, encoder,
+                                     cfg, seconds, str(k), progress)
+        stages.update(2)
 
-    t0 = time.monotonic()
-    encoder = out / "encoder"
-    if not (encoder / "summary.json").is_file():
-        train = data_mod.load_sim_split(sim, "train", progress=progress, **view)
-        val = data_mod.load_sim_split(sim, "val", limit=100, **view)
-        dcfg = DistillConfig(frames=cfg.scenes, iterations=cfg.iterations, lr=cfg.lr,
-                             lr_schedule="cosine",
-                             eval_every=max(1, min(500, cfg.iterations)), lambda_pose=0.0,
-                             lambda_label=cfg.label_weight,
-                             lambda_ownership=cfg.ownership_weight,
-                             lambda_user=cfg.user_weight, seed=cfg.seed)
-        user = None  # the user's frames, not their labels
-        if cfg.user_weight > 0:
-            user = (data_mod.load_sim_split(data, "train", limit=cfg.user_frames,
-                                            progress=progress)["x"] if bag is None
-                    else bag.frames(view["cfg"])[0]["x"][:cfg.user_frames])
-        distill(file, train["x"], val, encoder, dcfg, resume=True, progress=progress,
-                train_labels=train["labels"], user_x=user)
-    seconds["encoder"] = round(time.monotonic() - t0, 1)
-    stages.update(1)
-
-    finished = encoder / "best.pt"
     if cfg.head_iterations:
         t0 = time.monotonic()
         finished = label_head_stage(finished, sim, data, out / "head", cfg, progress)
@@ -424,5 +541,9 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
                "config": asdict(cfg),
                "seconds": seconds, "encoder": json.loads((encoder / "summary.json").read_text()),
                "card": str(out / "model" / "card.json"), "tau": card.get("tau")}
+    if cfg.size_by_thickness:
+        summary["size"] = json.loads((out / "size" / "size.json").read_text())
+    if cfg.size_rounds:
+        summary["size_rounds"] = rounds
     write_json(out / "summary.json", summary)
     return summary

@@ -1,0 +1,137 @@
+"""A learned rod's size, set from the user's unlabelled frames: no label, no size given by hand.
+
+A rod learned as a GAN from a recording can come out much larger than the part (the tilted
+RealSense cylinders: 54 x 35 x 37 mm for a 40 x 24 x 24 mm part), and a template of the wrong
+size teaches the loop's encoder on piles of the wrong part. Two label-free rules, each measured
+on that recording (docs/experiments.md, 2026-11-27):
+
+* `frame_thickness` / `size_to_thickness`: parts lying on the floor show their thickness as the
+  height of their tops. The lowest well-populated mode of the heights of the frames' local
+  maxima (25.3 mm for the 23.9 mm cylinders) becomes the height of the rod's thickest part
+  resting on the floor; the rod keeps its learned length-to-width ratio.
+* `choose_scale`: the template scaled at test time (`scaled`), tau calibrated anew on some of
+  the user's frames, and the scale whose renders explain other frames best (least
+  reconstruction L1) kept. After a loop on the thickness-sized rod it chose 1.2; the loop run
+  again at that scale chose 1.0 (a fixed point) and labelled best of every rod tried, hand-sized
+  ones included. On the shipped straight-down models it keeps their own size.
+
+Both apply to rod (sphere) templates only; another template is refused with a named error.
+"""
+from __future__ import annotations
+
+import copy
+import math
+
+import numpy as np
+import torch
+from scipy import ndimage
+
+from .model import SphereGenerator
+
+# the scales `choose_scale` tries, and how much lower (relative) a scale's error must be than
+# the template's own size for it to be taken: within that, the size is left as it is
+SCALES = (0.8, 0.9, 1.0, 1.1, 1.2, 1.3)
+MIN_GAIN = 0.01
+PEAK_WINDOW = 7  # pixels: a local maximum is the highest point of its 7 x 7 window
+
+
+def _rod(G) -> SphereGenerator:
+    if not isinstance(G, SphereGenerator):
+        raise ValueError(f"renderer {G.cfg.renderer!r}: only a rod of spheres (renderer "
+                         "'spheres') can be sized this way")
+    return G
+
+
+def frame_thickness(x: np.ndarray, fg: np.ndarray, max_height: float) -> float:
+    """Frames x (N, 1, H, W) in the model's input units ([-1, 1] over 0..max_height metres
+    above the floor) with foreground fg (N, H, W) -> the parts' thickness in metres: the lowest
+    mode (1 mm bins, at least a fifth of the largest) of the heights of the local maxima, the
+    median of the peaks within 2 mm of it. Heights at max_height (clipped) are left out."""
+    peaks = []
+    for xi, fi in zip(np.asarray(x), np.asarray(fg, bool)):
+        h = (xi[0].astype(np.float64) + 1) / 2 * max_height
+        top = (h == ndimage.maximum_filter(h, size=PEAK_WINDOW)) & fi & (h < max_height - 1e-3)
+        peaks.append(h[top])
+    mm = np.concatenate(peaks) * 1000 if peaks else np.zeros(0)
+    mm = mm[mm > 0.5]
+    if mm.size < 10:
+        raise ValueError(f"{mm.size} height peaks in {len(x)} frames: too few to measure the "
+                         "parts' thickness; valid: frames with parts in the bin")
+    counts = np.bincount(np.rint(mm).astype(int))
+    first = int(np.flatnonzero(counts >= 0.2 * counts.max())[0])
+    while first + 1 < len(counts) and counts[first + 1] > counts[first]:
+        first += 1  # climb to the top of that mode
+    return float(np.median(mm[np.abs(mm - first) <= 2])) / 1000
+
+
+def size_to_thickness(state: dict, G, metres_per_height_unit: float, thickness: float) -> float:
+    """Resize the rod of checkpoint `state` (in place; `G` is its generator) so that its thickest
+    sphere, resting on the floor, is `thickness` metres high: every sphere and the centres'
+    span scaled alike, the axis lifted to that sphere's radius. -> the scale applied."""
+    _rod(G)
+    with torch.no_grad():
+        r_max = float(G.spheres()[1].max())
+    r_new = thickness / 2 / metres_per_height_unit
+    s = r_new / r_max
+    g = state["generator"]
+    g["log_radius"] = g["log_radius"] + math.log(s)
+    g["length"] = g["length"] * s
+    g["lift"] = torch.as_tensor(r_new, dtype=g["lift"].dtype)
+    return s
+
+
+def rod_dimensions_mm(G, metres_per_unit) -> list[float]:
+    """The rod's extent along its axis, across it and its height (its thickest sphere), in
+    millimetres, with `metres_per_unit` (3,) of its template (`sim.learned.template_scale`)."""
+    with torch.no_grad():
+        centres, radii = (t.double().cpu().numpy() for t in _rod(G).spheres())
+    m = np.asarray(metres_per_unit, np.float64) * 1000
+    length = float((centres[:, 0] + radii).max() - (centres[:, 0] - radii).min())
+    return [length * m[0], 2 * float(radii.max()) * m[1], 2 * float(radii.max()) * m[2]]
+
+
+def scaled(G, s: float):
+    """A copy of the rod generator `G` whose template is `s` times as large (spheres, span and
+    lift; the poses the encoder reads are unchanged)."""
+    G = copy.deepcopy(_rod(G))
+    with torch.no_grad():
+        G.log_radius += math.log(s)
+        G.length *= s
+        G.lift *= s
+    return G
+
+
+def scale_state(state: dict, s: float) -> None:
+    """The rod of checkpoint `state` made `s` times as large, in place (as `scaled`)."""
+    g = state["generator"]
+    g["log_radius"] = g["log_radius"] + math.log(s)
+    g["length"] = g["length"] * s
+    g["lift"] = g["lift"] * s
+
+
+def choose_scale(seg, calib: dict, held: dict, scales=SCALES) -> tuple[float, list[dict]]:
+    """The template scale of `seg` (a segment.Segmenter with a rod, at the settings it will ship
+    with) whose renders explain the `held` frames best, tau calibrated on the `calib` frames
+    for each (`selfcheck.calibrate`, `selfcheck.measure`; no label read) -> (scale, a row per
+    scale). A scale is taken only if its error is MIN_GAIN (relative) below that of the size
+    as it is (1.0, which is always tried)."""
+    from .selfcheck import calibrate, measure
+
+    G0, tau0 = _rod(seg.G), seg.tau
+    scales = sorted(set(float(s) for s in scales) | {1.0})
+    if min(scales) <= 0:
+        raise ValueError(f"scales {scales} invalid; valid: > 0")
+    rows = []
+    try:
+        for s in scales:
+            seg.G = scaled(G0, s)
+            seg.tau = calibrate(seg, calib["x"], calib["fg"])[0]
+            m = measure(seg, held["x"], held["fg"])
+            rows.append({"scale": s, "tau": seg.tau, "recon_l1": m["recon_l1"],
+                         "coverage": m["coverage"], "spill": m["spill"],
+                         "count_equals_n": m["count_equals_n"]})
+    finally:
+        seg.G, seg.tau = G0, tau0
+    own = next(r["recon_l1"] for r in rows if r["scale"] == 1.0)
+    best = min(rows, key=lambda r: r["recon_l1"])
+    return (best["scale"] if best["recon_l1"] < own * (1 - MIN_GAIN) else 1.0), rows

@@ -1,0 +1,118 @@
+"""A learned rod sized from the user's unlabelled frames (`sizing`, `inseggan loop
+--size-by-thickness --size-rounds N`): the parts' thickness read off the frames, the rod resized
+to it, and the template's scale chosen by how well it explains the frames."""
+import json
+
+import pytest
+import torch
+from conftest import run_cli
+
+from inseggan_ros import checkpoint, sizing
+from inseggan_ros.data import load_sim_split
+from inseggan_ros.paths import resolve_model
+from inseggan_ros.segment import Segmenter
+from inseggan_ros.sim.learned import model_camera, template_scale
+
+CYLINDER = resolve_model("cylinder")  # the shipped model
+DIAMETER = 0.024  # the simulator's cylinder: 24 mm x 40 mm
+
+
+@pytest.fixture(scope="module")
+def cylinders(tmp_path_factory):
+    """40 simulated bins of five cylinders (12 training, 20 validation, 8 test scenes), the
+    shipped cylinder model's camera and bin."""
+    root = tmp_path_factory.mktemp("sizing") / "cylinders"
+    run_cli("simulate", "--quiet", "--object", "cylinder", "--count", "40", "--split",
+            "0.3,0.5,0.2", "--seed", "5", "--out", root, check=True, timeout=600)
+    return root
+
+
+def test_the_parts_thickness_is_read_off_unlabelled_frames(cylinders):
+    seg = Segmenter.from_checkpoint(CYLINDER, device="cpu")
+    frames = load_sim_split(cylinders, "train", seg.prep_cfg)
+    thickness = sizing.frame_thickness(frames["x"], frames["fg"], seg.prep_cfg.max_height)
+    # lying on the floor, a cylinder's top is its diameter high (the frames' heights carry
+    # the camera's quantisation and a tilt of some parts over others)
+    assert 0.9 * DIAMETER < thickness < 1.15 * DIAMETER, thickness
+    empty = frames["fg"][:3] & False
+    with pytest.raises(ValueError, match="too few to measure"):
+        sizing.frame_thickness(frames["x"][:3] * 0 - 1, empty, seg.prep_cfg.max_height)
+
+
+def test_a_rod_resized_to_a_thickness_rests_on_the_floor_at_that_height():
+    state = checkpoint.load(CYLINDER)
+    G = checkpoint.build_models(state, CYLINDER)[1]
+    metres = template_scale(state, G, model_camera(CYLINDER, state))
+    before = sizing.rod_dimensions_mm(G, metres)
+    s = sizing.size_to_thickness(state, G, float(metres[2]), 0.020)
+    G2 = checkpoint.build_models(state, CYLINDER)[1]
+    after = sizing.rod_dimensions_mm(G2, metres)
+    assert after[2] == pytest.approx(20.0, rel=1e-4)  # its thickest sphere 20 mm high
+    assert after[0] / after[1] == pytest.approx(before[0] / before[1], rel=1e-4)  # same shape
+    assert after[2] == pytest.approx(before[2] * s, rel=1e-4)
+    with torch.no_grad():  # the axis at that sphere's radius: it touches the floor
+        assert float(G2.lift) == pytest.approx(float(G2.spheres()[1].max()), rel=1e-4)
+    convex = checkpoint.load(resolve_model("wooden_block"))
+    with pytest.raises(ValueError, match="only a rod of spheres"):
+        sizing.scaled(checkpoint.build_models(convex)[1], 1.1)
+
+
+def test_the_scale_that_explains_the_frames_best_undoes_a_shrunk_template(cylinders):
+    """The shipped cylinder model keeps its own size; with its rod shrunk to 0.75 of it, the
+    frames choose a larger scale. No label is read."""
+    seg = Segmenter.from_checkpoint(CYLINDER, device="cpu")
+    frames = load_sim_split(cylinders, "val", seg.prep_cfg)
+    calib = {k: frames[k][:12] for k in ("x", "fg")}
+    held = {k: frames[k][12:] for k in ("x", "fg")}
+    own, rows = sizing.choose_scale(seg, calib, held, scales=(0.8, 1.0, 1.3))
+    assert [r["scale"] for r in rows] == [0.8, 1.0, 1.3] and own == 1.0, rows
+    tau, G = seg.tau, seg.G
+    seg.G = sizing.scaled(G, 0.75)
+    chosen, rows = sizing.choose_scale(seg, calib, held, scales=(1.0, 1.3))
+    assert chosen == 1.3, rows
+    assert seg.tau == tau  # the segmenter is left as it was
+    with pytest.raises(ValueError, match="scales"):
+        sizing.choose_scale(seg, calib, held, scales=(0.0, 1.0))
+
+
+def test_the_loop_sizes_the_rod_then_chooses_its_scale_and_resumes(cylinders, tmp):
+    """`inseggan loop --size-by-thickness --size-rounds 1` on the shipped cylinder's rod made
+    too small: resized to the frames' thickness first, then a scale chosen; where it is not 1,
+    the piles and the encoder again at that scale, and the shipped template is that one.
+    Started again, nothing is redone."""
+    start = tmp / "small.pt"
+    state = checkpoint.load(CYLINDER)
+    sizing.scale_state(state, 0.6)
+    checkpoint.save(start, state)
+    out = tmp / "loop"
+    args = ["loop", "--model", start, "--data", cylinders, "--out", out, "--scenes", "12",
+            "--val-scenes", "4", "--iterations", "6", "--size-by-thickness", "--size-rounds",
+            "1", "--quiet"]
+    p = run_cli(*args, check=True, timeout=900)
+    assert "rod sized to the frames' thickness" in p.stdout, p.stdout
+    summary = json.loads((out / "summary.json").read_text())
+    size = summary["size"]
+    assert 0.9 * DIAMETER * 1000 < size["thickness_mm"] < 1.15 * DIAMETER * 1000
+    assert size["dimensions_mm_after"][2] == pytest.approx(size["thickness_mm"], rel=1e-3)
+    assert size["dimensions_mm_before"][2] < 0.8 * size["thickness_mm"]  # it was too small
+    (chosen,) = summary["size_rounds"]
+    assert [r["scale"] for r in chosen["rows"]] == list(sizing.SCALES)
+    sized = checkpoint.load(out / "size" / "model.pt")["generator"]
+    shipped = checkpoint.load(out / "model" / "model.pt")["generator"]
+    if chosen["scale"] != 1.0:
+        assert list(summary["seconds"]) == ["size", "simulate", "encoder", "scale1",
+                                            "simulate1", "encoder1", "export"]
+        want = float(sized["log_radius"]) + float(torch.tensor(chosen["scale"]).log())
+        assert (out / "size_round1" / "encoder" / "summary.json").is_file()
+    else:
+        assert list(summary["seconds"]) == ["size", "simulate", "encoder", "scale1", "export"]
+        want = float(sized["log_radius"])
+        assert not (out / "size_round1" / "sim").exists()
+    assert float(shipped["log_radius"]) == pytest.approx(want, abs=1e-5)
+    stamps = {f: f.stat().st_mtime_ns for f in (out / "size" / "model.pt", out / "encoder" /
+              "last.pt", out / "size_round1" / "scale.json")}
+    run_cli(*args, check=True, timeout=600)
+    assert {f: f.stat().st_mtime_ns for f in stamps} == stamps
+    p = run_cli("loop", "--model", start, "--data", cylinders, "--out", tmp / "o",
+                "--size-rounds", "-1")
+    assert p.returncode == 2 and "size_rounds -1 invalid" in p.stderr, p.stderr
