@@ -19,27 +19,11 @@ labels best? (docs/experiments.md, 2026-11-27.)
 from __future__ import annotations
 
 import argparse
-import copy
 import json
-import math
 from pathlib import Path
 
 import numpy as np
 import torch
-
-
-def scaled(G, s: float):
-    """A copy of the rod generator `G` whose template is `s` times as large."""
-    from inseggan_ros.model import SphereGenerator
-
-    if not isinstance(G, SphereGenerator):
-        raise ValueError(f"renderer {G.cfg.renderer!r}: only a rod of spheres is scaled here")
-    G = copy.deepcopy(G)
-    with torch.no_grad():
-        G.log_radius += math.log(s)
-        G.length *= s
-        G.lift *= s
-    return G
 
 
 def main(argv=None) -> int:
@@ -57,6 +41,7 @@ def main(argv=None) -> int:
     from inseggan_ros import evaluate, selfcheck
     from inseggan_ros.metrics import mean_miou, miou_batch
     from inseggan_ros.segment import Segmenter
+    from inseggan_ros.sizing import scaled
 
     seg = Segmenter.from_checkpoint(args.model, device="cpu")
     G0, n = seg.G, seg.model_cfg.n_instances
