@@ -403,6 +403,8 @@ def size_stage(file: Path, data, out: Path, cfg: LoopConfig) -> Path:
     G = checkpoint.build_models(state, file)[1]
     prep = PreprocessConfig.from_dict(state["preprocess_config"])
     frames = _user_frames(data, prep, "train", cfg.size_frames)
+    if len(frames["x"]) == 0 and not isinstance(data, BagFrames):  # a data set of no training
+        frames = _user_frames(data, prep, "val", cfg.size_frames)  # split: its validation one
     thickness = sizing.frame_thickness(frames["x"], frames["fg"], prep.max_height)
     camera = model_camera(file, state)
     metres = template_scale(state, G, camera)
@@ -463,6 +465,13 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
                          "(not both)")
     if model is not None:
         _model_file(model)  # a missing model is named before anything else
+    if cfg.size_by_thickness or cfg.size_rounds:  # before any stage spends its time
+        renderer = (train_cfg.model.renderer if model is None else checkpoint.load(
+            _model_file(model))["model_config"].get("renderer", "learned"))
+        if renderer != "spheres":
+            raise ValueError(f"--size-by-thickness / --size-rounds size a rod of spheres; the "
+                             f"model's template is {renderer!r} (valid: renderer 'spheres', "
+                             "or neither option)")
     from .selffit import check_settings
 
     check_settings(cfg.export_settings)

@@ -116,3 +116,7 @@ def test_the_loop_sizes_the_rod_then_chooses_its_scale_and_resumes(cylinders, tm
     p = run_cli("loop", "--model", start, "--data", cylinders, "--out", tmp / "o",
                 "--size-rounds", "-1")
     assert p.returncode == 2 and "size_rounds -1 invalid" in p.stderr, p.stderr
+    p = run_cli("loop", "--model", resolve_model("wooden_block"), "--data", cylinders, "--out",
+                tmp / "o", "--size-by-thickness")  # a convex template: refused before any stage
+    assert p.returncode == 2 and "size a rod of spheres" in p.stderr, p.stderr
+    assert not (tmp / "o").exists()
