@@ -19,7 +19,7 @@ DIAMETER = 0.024  # the simulator's cylinder: 24 mm x 40 mm
 
 @pytest.fixture(scope="module")
 def cylinders(tmp_path_factory):
-    """40 simulated bins of five cylinders (12 training, 20 validation, 8 test scenes), the
+    """40 simulated bins of five cylinders: 12 training, 20 validation and 8 test scenes, the
     shipped cylinder model's camera and bin."""
     root = tmp_path_factory.mktemp("sizing") / "cylinders"
     run_cli("simulate", "--quiet", "--object", "cylinder", "--count", "40", "--split",
