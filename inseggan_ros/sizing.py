@@ -1,19 +1,18 @@
 """A learned rod's size, set from the user's unlabelled frames: no label, no size given by hand.
 
-A rod learned as a GAN from a recording can come out much larger than the part (the tilted
-RealSense cylinders: 54 x 35 x 37 mm for a 40 x 24 x 24 mm part), and a template of the wrong
-size teaches the loop's encoder on piles of the wrong part. Two label-free rules, each measured
-on that recording (docs/experiments.md, 2026-11-27):
+A rod learned as a GAN from a recording can come out much larger than the part, and a
+template of the wrong size teaches the loop's encoder on piles of the wrong part. Two
+label-free rules (`inseggan loop --size-by-thickness --size-rounds N`; what they measured:
+docs/experiments.md, 2026-11-27, day):
 
 * `frame_thickness` / `size_to_thickness`: parts lying on the floor show their thickness as the
   height of their tops. The lowest well-populated mode of the heights of the frames' local
-  maxima (25.3 mm for the 23.9 mm cylinders) becomes the height of the rod's thickest part
-  resting on the floor; the rod keeps its learned length-to-width ratio.
+  maxima becomes the height of the rod's thickest part resting on the floor; the rod keeps its
+  learned length-to-width ratio.
 * `choose_scale`: the template scaled at test time (`scaled`), tau calibrated anew on some of
   the user's frames, and the scale whose renders explain other frames best (least
-  reconstruction L1) kept. After a loop on the thickness-sized rod it chose 1.2; the loop run
-  again at that scale chose 1.0 (a fixed point) and labelled best of every rod tried, hand-sized
-  ones included. On the shipped straight-down models it keeps their own size.
+  reconstruction L1) kept. The loop then simulates and fits again at that scale, until the
+  scale it chooses is 1.
 
 Both apply to rod (sphere) templates only; another template is refused with a named error.
 """
