@@ -250,7 +250,6 @@ def label_head_stage(model: Path, sim: Path, data, out: Path, cfg: LoopConfig,
     """Stage 3: a label head (`label_head.fit`) for the encoder's model on the simulated piles,
     at the tau the user's validation frames give without their labels (as the export will
     calibrate it) -> out/model.pt. Skipped when that exists."""
-    from . import data as data_mod
     from .label_head import HeadConfig, fit
     from .segment import Segmenter
     from .selfcheck import calibrate
@@ -258,10 +257,7 @@ def label_head_stage(model: Path, sim: Path, data, out: Path, cfg: LoopConfig,
     if (out / "model.pt").is_file():
         return out / "model.pt"
     seg = Segmenter.from_checkpoint(model, device="cpu")
-    if isinstance(data, BagFrames):
-        calib = data.frames(seg.prep_cfg, limit=200)[0]  # the 200 the export calibrates on
-    else:
-        calib = data_mod.load_sim_split(data, "val", seg.prep_cfg, limit=200)
+    calib = _user_frames(data, seg.prep_cfg, "val", 200)  # the 200 the export calibrates on
     tau, _ = calibrate(seg, calib["x"], calib["fg"])
     hcfg = HeadConfig(iterations=cfg.head_iterations, seed=cfg.seed,
                       eval_every=max(1, min(250, cfg.head_iterations)))
@@ -278,12 +274,11 @@ def self_stage(model: Path, data, out: Path, cfg: LoopConfig, progress: bool = T
     from .selffit import SelfFitConfig, self_fit
 
     prep = Segmenter.from_checkpoint(model, device="cpu").prep_cfg
+    calib = _user_frames(data, prep, "val", 200)  # the 200 the export calibrates on
     if isinstance(data, BagFrames):
         frames = data.frames(prep)[0]
-        calib = data.frames(prep, limit=200)[0]
     else:
         frames = data_mod.load_sim_split(data, "train", limit=cfg.self_frames, progress=progress)
-        calib = data_mod.load_sim_split(data, "val", prep, limit=200)
     scfg = SelfFitConfig(frames=cfg.self_frames, iterations=cfg.self_iterations,
                          settings=cfg.self_settings, lr=cfg.lr, label_weight=cfg.label_weight,
                          ownership_weight=cfg.ownership_weight, workers=cfg.workers,
@@ -291,16 +286,25 @@ def self_stage(model: Path, data, out: Path, cfg: LoopConfig, progress: bool = T
     return self_fit(model, frames, calib, out, scfg, progress)
 
 
-def _export(finished: Path, data, cfg: LoopConfig, out: Path) -> dict:
-    """Stage 5: the model shipped with `cfg.export_settings` (a training checkpoint carries
-    only the bare defaults: no refinement, one starting point, no smoothing)."""
+def _shipped_segmenter(file: Path, cfg: LoopConfig):
+    """The Segmenter of `file` with `cfg.export_settings` over its checkpoint's (a training
+    checkpoint carries only the bare defaults), as the exported model will run."""
     from . import settings
-    from .modelcard import export_from_bag, export_from_dataset
     from .paths import resolve_config
     from .segment import Segmenter
 
-    inference = settings.apply(Segmenter.from_checkpoint(finished, device="cpu").inference,
-                               settings.read_params_file(resolve_config(cfg.export_settings)))
+    seg = Segmenter.from_checkpoint(file, device="cpu")
+    seg.inference = settings.apply(seg.inference,
+                                   settings.read_params_file(resolve_config(cfg.export_settings)))
+    return seg
+
+
+def _export(finished: Path, data, cfg: LoopConfig, out: Path) -> dict:
+    """Stage 5: the model shipped with `cfg.export_settings` (a training checkpoint carries
+    only the bare defaults: no refinement, one starting point, no smoothing)."""
+    from .modelcard import export_from_bag, export_from_dataset
+
+    inference = _shipped_segmenter(finished, cfg).inference
     if isinstance(data, BagFrames):
         return export_from_bag(finished, data.path, cfg.name, out, data.topic, data.labels_topic,
                                data.held_out, inference=inference)
@@ -425,15 +429,11 @@ def scale_check(file: Path, data, out: Path, cfg: LoopConfig) -> dict:
     explains the user's frames best (`sizing.choose_scale`: tau calibrated on some of them,
     the error measured on others, none of them the card's; no label read) -> out/scale.json;
     where the scale is not 1, out/start.pt is `file` at that scale. Skipped when done."""
-    from . import checkpoint, settings, sizing
-    from .paths import resolve_config
-    from .segment import Segmenter
+    from . import checkpoint, sizing
 
     if (out / "scale.json").is_file():
         return json.loads((out / "scale.json").read_text())
-    seg = Segmenter.from_checkpoint(file, device="cpu")
-    seg.inference = settings.apply(seg.inference,
-                                   settings.read_params_file(resolve_config(cfg.export_settings)))
+    seg = _shipped_segmenter(file, cfg)
     frames = _user_frames(data, seg.prep_cfg, "val", cfg.size_frames)
     held = max(1, len(frames["x"]) * 2 // 7)  # 80 of 280
     calib = {k: frames[k][:-held] for k in ("x", "fg")}

@@ -72,10 +72,9 @@ def size_to_thickness(state: dict, G, metres_per_height_unit: float, thickness: 
         r_max = float(G.spheres()[1].max())
     r_new = thickness / 2 / metres_per_height_unit
     s = r_new / r_max
+    scale_state(state, s)
     g = state["generator"]
-    g["log_radius"] = g["log_radius"] + math.log(s)
-    g["length"] = g["length"] * s
-    g["lift"] = torch.as_tensor(r_new, dtype=g["lift"].dtype)
+    g["lift"] = torch.as_tensor(r_new, dtype=g["lift"].dtype)  # resting on the floor
     return s
 
 
