@@ -410,7 +410,9 @@ def cmd_loop(args) -> int:
           + f"); encoder validation mIoU on the simulated scenes {enc['val'][0]['miou']:.3f} -> "
           f"{enc['best_score']:.3f}; model: {args.out}/model (tau {summary['tau']:.2f}), "
           f"card {summary['card']}")
-    if "size" in summary:
+    if "size" in summary and summary["size"].get("left_as_is"):
+        print(f"rod not resized to the frames' thickness: {summary['size']['left_as_is']}")
+    elif "size" in summary:
         size = summary["size"]
         print("rod sized to the frames' thickness, {:.1f} mm: {} -> {} mm".format(
             size["thickness_mm"], " x ".join(f"{v:.1f}" for v in size["dimensions_mm_before"]),
@@ -940,14 +942,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--export-settings", default="realtime",
                    help="the exported model's own settings, as the node and its card use "
                         "them (realtime)")
-    p.add_argument("--size-by-thickness", action="store_true",
+    p.add_argument("--size-by-thickness", nargs="?", const="on", default="auto",
+                   choices=("auto", "on", "off"),
                    help="before the first simulation, resize the rod to the thickness of the "
-                        "parts in the user's frames (no label read; measured: "
-                        "docs/experiments.md, 2026-11-27, day)")
-    p.add_argument("--size-rounds", type=int, default=0,
+                        "parts in the user's frames (no label read). auto, the default: only "
+                        "a rod the loop learns itself (no --model) that came out elongated; "
+                        "on (the option alone): any rod; off (measured: docs/experiments.md, "
+                        "2026-11-27)")
+    p.add_argument("--size-rounds", type=int, default=None,
                    help="after the encoder, up to N rounds of: the rod's scale chosen by how "
                         "well it explains the user's frames, and where it is not 1, the "
-                        "simulation and the encoder again at that scale (0, the default: none)")
+                        "simulation and the encoder again at that scale (default: 2 for a rod "
+                        "the loop learns itself, 0 with --model)")
     p.add_argument("--name", default="model", help="the exported model's name")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_loop)

@@ -26,13 +26,15 @@ resumes from its last checkpoint; the export writes its folder atomically):
   0. shape (only without `--model`): `train.train` on the data set's training frames (no labels;
      validation by reconstruction when the data set has none) into out/shape, for the training
      config's budget; a killed run resumes from out/shape/last.pt; its best.pt is the model;
-  0b. size (only with `size_by_thickness`): a rod resized to the thickness the user's
-     frames show (`sizing`) -> out/size/model.pt;
+  0b. size (`size_by_thickness`; by default only for a rod the loop learned itself, and only
+     an elongated one): a rod resized to the thickness the user's frames show (`sizing`)
+     -> out/size/model.pt;
   1. simulate: `--scenes` labelled scenes of the learned part, with the camera, noise, bin and
      number of instances of the user's data set (its meta.json) or bag;
   2. encoder: the model's encoder fitted to them (`distill.DistillConfig` with the label losses),
      with `--user-weight`, while also reconstructing the user's own unlabelled training frames;
-  2b. size rounds (only with `size_rounds`): the rod's scale chosen by how well it explains
+  2b. size rounds (`size_rounds`; by default AUTO_SIZE_ROUNDS for a rod the loop learned
+     itself, none for a given model): the rod's scale chosen by how well it explains
      the user's frames (`sizing.choose_scale`; out/size_round<k>/scale.json); where it is not
      1, stages 1 and 2 again from the scaled model, into out/size_round<k>/sim and encoder;
   3. head (only with `head_iterations`): a label head (`label_head.py`) taught on the same
@@ -64,6 +66,11 @@ if TYPE_CHECKING:
     from .sim.scene import SceneConfig
 
 
+# the size rounds a loop that learns its own rod runs unless told otherwise (measured on two
+# tilted recordings: docs/experiments.md, 2026-11-27)
+AUTO_SIZE_ROUNDS = 2
+
+
 @dataclass(frozen=True)
 class LoopConfig:
     scenes: int = 3000  # labelled scenes of the learned part to train the encoder on
@@ -86,11 +93,14 @@ class LoopConfig:
     self_settings: str = "quality"  # the settings those labels are made with
     export_settings: str = "realtime"  # the shipped model's own settings (what the node and
     # the card use), over those of the checkpoint
-    size_by_thickness: bool = False  # a rod resized, before the first simulation, to the
-    # thickness the user's frames show (`sizing.frame_thickness`)
-    size_rounds: int = 0  # after the encoder, up to this many rounds of: the rod's scale chosen
-    # by how well it explains the user's frames (`sizing.choose_scale`), and where it is not
-    # 1, the simulation and the encoder again at that scale (0 = none)
+    size_by_thickness: str = "auto"  # "on": a rod resized, before the first simulation, to
+    # the thickness the user's frames show (`sizing.frame_thickness`); "auto": so only when the
+    # loop learns the rod itself and it came out elongated (`sizing.ELONGATED`: a part lying on
+    # its side, whose thickness is its width; a flat part's is not); "off"
+    size_rounds: int | None = None  # after the encoder, up to this many rounds of: the rod's
+    # scale chosen by how well it explains the user's frames (`sizing.choose_scale`), and where
+    # it is not 1, the simulation and the encoder again at that scale (0 = none; None:
+    # AUTO_SIZE_ROUNDS when the loop learns the rod itself, else 0)
     size_frames: int = 280  # of the user's frames for those two (not the card's)
 
     def __post_init__(self):
@@ -101,7 +111,10 @@ class LoopConfig:
                     "self_iterations"):
             if getattr(self, key) < 1:
                 raise ValueError(f"{key} {getattr(self, key)!r} invalid; valid: >= 1")
-        if self.size_rounds < 0:
+        if self.size_by_thickness not in ("auto", "on", "off"):
+            raise ValueError(f"size_by_thickness {self.size_by_thickness!r} invalid; valid: "
+                             "auto, on, off")
+        if self.size_rounds is not None and self.size_rounds < 0:
             raise ValueError(f"size_rounds {self.size_rounds!r} invalid; valid: >= 0 (0 = the "
                              "template's size as learned)")
         if self.size_frames < 20:
@@ -393,26 +406,59 @@ def _user_frames(data, prep, split: str, limit: int) -> dict:
     return data_mod.load_sim_split(data, split, prep, limit=limit)
 
 
-def size_stage(file: Path, data, out: Path, cfg: LoopConfig) -> Path:
+def size_plan(cfg: LoopConfig, learns: bool, renderer: str) -> tuple[str, int]:
+    """What the loop sizes: ("on" | "if_elongated" | "off", size rounds) from the config, whether
+    the loop learns the template itself (`learns`) and its renderer. By default ("auto", None) a
+    rod the loop learns itself is sized, to the thickness only if it is elongated, and gets
+    AUTO_SIZE_ROUNDS rounds; a given model is left as it is. Asking for either on a template
+    that is not a rod raises, before any stage spends its time."""
+    rod = renderer == "spheres"
+    if not rod and (cfg.size_by_thickness == "on" or cfg.size_rounds):
+        raise ValueError(f"--size-by-thickness / --size-rounds size a rod of spheres; the "
+                         f"model's template is {renderer!r} (valid: renderer 'spheres', or "
+                         "--size-by-thickness off --size-rounds 0)")
+    auto = learns and rod
+    thickness = {"on": "on", "off": "off"}.get(cfg.size_by_thickness,
+                                               "if_elongated" if auto else "off")
+    rounds = cfg.size_rounds if cfg.size_rounds is not None else (AUTO_SIZE_ROUNDS if auto
+                                                                  else 0)
+    return thickness, rounds
+
+
+def size_stage(file: Path, data, out: Path, cfg: LoopConfig, only_elongated: bool = False
+               ) -> Path:
     """Stage 0b: the rod of `file` resized to the thickness of the parts in the user's frames
     (`sizing.frame_thickness` on a bag's frames before its cut, or a data set's training
-    split; no label read) -> out/model.pt, with out/size.json. Skipped when both exist."""
+    split; no label read) -> out/model.pt, with out/size.json. With `only_elongated`, a rod
+    shorter than `sizing.ELONGATED` times its width is left as it is (size.json says so, and
+    `file` is returned). Skipped when done."""
     from . import checkpoint, sizing
     from .preprocess import PreprocessConfig
     from .sim.learned import model_camera, template_scale
 
-    if (out / "model.pt").is_file() and (out / "size.json").is_file():
-        return out / "model.pt"
+    if (out / "size.json").is_file():
+        done = json.loads((out / "size.json").read_text())
+        if done.get("left_as_is"):
+            return file
+        if (out / "model.pt").is_file():
+            return out / "model.pt"
     state = checkpoint.load(file)
     G = checkpoint.build_models(state, file)[1]
     prep = PreprocessConfig.from_dict(state["preprocess_config"])
+    camera = model_camera(file, state)
+    metres = template_scale(state, G, camera)
+    before = sizing.rod_dimensions_mm(G, metres)
+    if only_elongated and not sizing.elongated(before):
+        out.mkdir(parents=True, exist_ok=True)
+        write_json(out / "size.json", {
+            "model": str(file), "left_as_is": f"the rod is not elongated (length / width "
+            f"{before[0] / before[1]:.2f} < {sizing.ELONGATED}): its thickness need not be its "
+            "width", "dimensions_mm_before": before, "dimensions_mm_after": before})
+        return file
     frames = _user_frames(data, prep, "train", cfg.size_frames)
     if len(frames["x"]) == 0 and not isinstance(data, BagFrames):  # a data set of no training
         frames = _user_frames(data, prep, "val", cfg.size_frames)  # split: its validation one
     thickness = sizing.frame_thickness(frames["x"], frames["fg"], prep.max_height)
-    camera = model_camera(file, state)
-    metres = template_scale(state, G, camera)
-    before = sizing.rod_dimensions_mm(G, metres)
     s = sizing.size_to_thickness(state, G, float(metres[2]), thickness)
     G = checkpoint.build_models(state, file)[1]
     after = sizing.rod_dimensions_mm(G, template_scale(state, G, camera))
@@ -465,13 +511,9 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
                          "(not both)")
     if model is not None:
         _model_file(model)  # a missing model is named before anything else
-    if cfg.size_by_thickness or cfg.size_rounds:  # before any stage spends its time
-        renderer = (train_cfg.model.renderer if model is None else checkpoint.load(
-            _model_file(model))["model_config"].get("renderer", "learned"))
-        if renderer != "spheres":
-            raise ValueError(f"--size-by-thickness / --size-rounds size a rod of spheres; the "
-                             f"model's template is {renderer!r} (valid: renderer 'spheres', "
-                             "or neither option)")
+    renderer = (train_cfg.model.renderer if model is None else checkpoint.load(
+        _model_file(model))["model_config"].get("renderer", "learned"))
+    thickness, size_rounds = size_plan(cfg, model is None, renderer)  # raises before any stage
     from .selffit import check_settings
 
     check_settings(cfg.export_settings)
@@ -489,7 +531,7 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
     out.mkdir(parents=True, exist_ok=True)
     seconds: dict[str, float] = {}
     stages = tqdm(total=(3 if model is not None else 4) + bool(cfg.head_iterations)
-                  + bool(cfg.self_frames) + bool(cfg.size_by_thickness) + cfg.size_rounds,
+                  + bool(cfg.self_frames) + (thickness != "off") + size_rounds,
                   desc="loop", unit="stage", disable=not progress,
                   position=0)
     if model is None:
@@ -505,9 +547,9 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
         view = {"cfg": PreprocessConfig.from_dict(checkpoint.load(file)["preprocess_config"]),
                 "as_given": True}
 
-    if cfg.size_by_thickness:
+    if thickness != "off":
         t0 = time.monotonic()
-        file = size_stage(file, data, out / "size", cfg)
+        file = size_stage(file, data, out / "size", cfg, thickness == "if_elongated")
         seconds["size"] = round(time.monotonic() - t0, 1)
         stages.update(1)
     sim, encoder = out / "sim", out / "encoder"
@@ -515,7 +557,7 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
                                  progress)
     stages.update(2)
     rounds = []
-    for k in range(1, cfg.size_rounds + 1):
+    for k in range(1, size_rounds + 1):
         t0 = time.monotonic()
         chosen = scale_check(finished, data, out / f"size_round{k}", cfg)
         seconds[f"scale{k}"] = round(time.monotonic() - t0, 1)
@@ -550,9 +592,10 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
                "config": asdict(cfg),
                "seconds": seconds, "encoder": json.loads((encoder / "summary.json").read_text()),
                "card": str(out / "model" / "card.json"), "tau": card.get("tau")}
-    if cfg.size_by_thickness:
+    summary["sizing"] = {"by_thickness": thickness, "rounds": size_rounds}
+    if thickness != "off":
         summary["size"] = json.loads((out / "size" / "size.json").read_text())
-    if cfg.size_rounds:
+    if size_rounds:
         summary["size_rounds"] = rounds
     write_json(out / "summary.json", summary)
     return summary

@@ -32,6 +32,10 @@ from .model import SphereGenerator
 SCALES = (0.8, 0.9, 1.0, 1.1, 1.2, 1.3)
 MIN_GAIN = 0.01
 PEAK_WINDOW = 7  # pixels: a local maximum is the highest point of its 7 x 7 window
+# a rod at least this many times as long as it is wide is taken for a part that lies on its
+# side, whose thickness is its width (what `size_to_thickness` assumes); a shorter one (a hex
+# nut's learned rod is about as long as wide) is not resized to the thickness by default
+ELONGATED = 1.2
 
 
 def _rod(G) -> SphereGenerator:
@@ -76,6 +80,12 @@ def size_to_thickness(state: dict, G, metres_per_height_unit: float, thickness: 
     g = state["generator"]
     g["lift"] = torch.as_tensor(r_new, dtype=g["lift"].dtype)  # resting on the floor
     return s
+
+
+def elongated(dimensions) -> bool:
+    """Whether a rod of `dimensions` (length, width, height: `rod_dimensions_mm`) is at least
+    ELONGATED times as long as it is wide."""
+    return dimensions[0] >= ELONGATED * dimensions[1]
 
 
 def rod_dimensions_mm(G, metres_per_unit) -> list[float]:

@@ -2,6 +2,7 @@
 those labelled piles, the result shipped with a card from the user's frames; resumable stage by
 stage."""
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -10,6 +11,7 @@ import torch
 from conftest import run_cli
 
 from inseggan_ros import checkpoint, losses
+from inseggan_ros.loop import AUTO_SIZE_ROUNDS
 from inseggan_ros.data import load_bag, load_sim_split
 from inseggan_ros.preprocess import PreprocessConfig
 from inseggan_ros.sim.learned import model_camera, template_scale
@@ -117,7 +119,16 @@ def test_one_command_from_a_bag_learns_the_shape_then_ships_a_model(tmp):
     p = run_cli(*args, check=True, timeout=900)
     assert "loop done" in p.stdout and "shape" in p.stdout
     summary = json.loads((out / "summary.json").read_text())
-    assert list(summary["seconds"]) == ["shape", "simulate", "encoder", "head", "export"]
+    # by default a rod the loop learns itself is sized (tests/test_sizing.py): to the
+    # thickness where it came out elongated, then up to two scale rounds
+    assert summary["sizing"] == {"by_thickness": "if_elongated", "rounds": AUTO_SIZE_ROUNDS}
+    thick = [] if summary["size"].get("left_as_is") else ["size"]
+    scales = [r["scale"] for r in summary["size_rounds"]]
+    rounds = [f"{stage}{k}" for k, s in enumerate(scales, 1)
+              for stage in (["scale"] if s == 1 else ["scale", "simulate", "encoder"])]
+    assert list(summary["seconds"]) == ["shape", *thick, "simulate", "encoder", *rounds,
+                                        "head", "export"]
+    assert len(scales) == AUTO_SIZE_ROUNDS or scales[-1] == 1.0, scales
     assert summary["data"]["kind"] == "bag" and summary["data"]["instances"] == 4
     shape = json.loads((out / "shape" / "summary.json").read_text())
     assert shape["iterations"] == 10
@@ -148,20 +159,30 @@ def test_one_command_from_a_bag_learns_the_shape_then_ships_a_model(tmp):
     piles = load_sim_split(out / "sim", "train", prep, limit=8, as_given=True)
     frames = load_bag(bag, prep, limit=8)
     assert np.abs(np.median(piles["roi"], 0) - np.median(frames["roi"], 0)).max() <= 3
-    # the shipped model carries the template the shape stage learned, at the bag's n
+    # the shipped model carries the template the shape stage learned, at the bag's n, sized
+    # as the stages said: its spheres as many times as large
     shipped = checkpoint.load(out / "model" / "model.pt")
     assert learned["model_config"]["n_instances"] == 4
     shape_keys = [k for k in learned["generator"] if not k.startswith("pose.")]  # the rod
-    assert shape_keys
+    assert "log_radius" in shape_keys
+    scale = math.prod(scales) * (summary["size"]["scale"] if thick else 1.0)
     for key in shape_keys:
-        assert torch.allclose(learned["generator"][key].float(),
-                              shipped["generator"][key].float(), atol=1e-3), key
+        want = learned["generator"][key].float()
+        if key == "log_radius":
+            want = want + math.log(scale)
+        elif key == "length":
+            want = want * scale
+        elif key == "lift" and scale != 1:
+            continue  # set to rest on the floor when sized, then scaled
+        assert torch.allclose(want, shipped["generator"][key].float(), atol=1e-3), key
     # with its label head (its training: tests/test_label_head.py), switched on, at its tau
     assert shipped["label_head"]["width"] == 8 and shipped["inference"]["label_head"] == "on"
     assert shipped["tau"] == shipped["label_head"]["tau"]
     # started again after a complete run: every stage's result is there, nothing is redone
-    stamps = {p: p.stat().st_mtime_ns for p in (out / "shape" / "last.pt", out / "sim" /
-              "meta.json", out / "encoder" / "last.pt", out / "head" / "model.pt")}
+    kept = (out / "shape" / "last.pt", out / "sim" / "meta.json", out / "encoder" / "last.pt",
+            out / "head" / "model.pt", out / "size" / "size.json",
+            out / "size_round1" / "scale.json")
+    stamps = {p: p.stat().st_mtime_ns for p in kept}
     run_cli(*args, check=True, timeout=600)
     assert {p: p.stat().st_mtime_ns for p in stamps} == stamps
     p = run_cli("loop", "--model", out / "shape" / "best.pt", "--bag", bag, "--instances", "4",

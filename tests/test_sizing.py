@@ -9,6 +9,7 @@ from conftest import run_cli
 
 from inseggan_ros import checkpoint, sizing
 from inseggan_ros.data import load_sim_split
+from inseggan_ros.loop import AUTO_SIZE_ROUNDS, LoopConfig, size_plan, size_stage
 from inseggan_ros.paths import resolve_model
 from inseggan_ros.segment import Segmenter
 from inseggan_ros.sim.learned import model_camera, template_scale
@@ -120,3 +121,35 @@ def test_the_loop_sizes_the_rod_then_chooses_its_scale_and_resumes(cylinders, tm
                 tmp / "o", "--size-by-thickness")  # a convex template: refused before any stage
     assert p.returncode == 2 and "size a rod of spheres" in p.stderr, p.stderr
     assert not (tmp / "o").exists()
+
+
+def test_by_default_only_a_rod_the_loop_learns_is_sized_and_a_flat_parts_is_left_as_is(
+        cylinders, tmp):
+    """The defaults (`--size-by-thickness auto`, `--size-rounds` unset): a rod the loop learns
+    itself is sized to the thickness if it is elongated and gets AUTO_SIZE_ROUNDS rounds; a
+    given model is left alone; asking for sizing of a convex template is refused. The stage
+    itself leaves the shipped hex nut's rod (about as long as wide: a nut lies flat, so its
+    thickness is not its width) as it is, and resizes the shipped cylinder's."""
+    auto = LoopConfig()
+    assert size_plan(auto, True, "spheres") == ("if_elongated", AUTO_SIZE_ROUNDS)
+    assert size_plan(auto, False, "spheres") == ("off", 0)
+    assert size_plan(auto, True, "convex") == ("off", 0)
+    assert size_plan(LoopConfig(size_by_thickness="on", size_rounds=1), False,
+                     "spheres") == ("on", 1)
+    assert size_plan(LoopConfig(size_by_thickness="off", size_rounds=0), True,
+                     "spheres") == ("off", 0)
+    with pytest.raises(ValueError, match="size a rod of spheres"):
+        size_plan(LoopConfig(size_rounds=1), True, "convex")
+    with pytest.raises(ValueError, match="size_by_thickness 'yes' invalid"):
+        LoopConfig(size_by_thickness="yes")
+
+    nut = resolve_model("hex_nut")
+    assert size_stage(nut, cylinders, tmp / "nut", auto, only_elongated=True) == nut
+    left = json.loads((tmp / "nut" / "size.json").read_text())
+    assert "not elongated" in left["left_as_is"] and not (tmp / "nut" / "model.pt").exists()
+    assert size_stage(nut, cylinders, tmp / "nut", auto, only_elongated=True) == nut  # resumed
+    sized = size_stage(CYLINDER, cylinders, tmp / "cyl", auto, only_elongated=True)
+    assert sized == tmp / "cyl" / "model.pt"
+    done = json.loads((tmp / "cyl" / "size.json").read_text())
+    assert sizing.elongated(done["dimensions_mm_before"])
+    assert done["dimensions_mm_after"][2] == pytest.approx(done["thickness_mm"], rel=1e-3)
