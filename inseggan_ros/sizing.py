@@ -2,13 +2,15 @@
 
 A rod learned as a GAN from a recording can come out much larger than the part, and a
 template of the wrong size teaches the loop's encoder on piles of the wrong part. Two
-label-free rules (`inseggan loop --size-by-thickness --size-rounds N`; what they measured:
-docs/experiments.md, 2026-11-27, day):
+label-free rules (`inseggan loop`, on by default for a rod the loop learns itself:
+`loop.size_plan`; what they measured: docs/experiments.md, 2026-11-27):
 
 * `frame_thickness` / `size_to_thickness`: parts lying on the floor show their thickness as the
   height of their tops. The lowest well-populated mode of the heights of the frames' local
   maxima becomes the height of the rod's thickest part resting on the floor; the rod keeps its
-  learned length-to-width ratio.
+  learned length-to-width ratio. This assumes a part lying on its side, whose thickness is its
+  width; a part that lies flat (a nut) breaks it, so by default it sizes only a rod that came
+  out elongated (`elongated`).
 * `choose_scale`: the template scaled at test time (`scaled`), tau calibrated anew on some of
   the user's frames, and the scale whose renders explain other frames best (least
   reconstruction L1) kept. The loop then simulates and fits again at that scale, until the
