@@ -418,10 +418,12 @@ def size_plan(cfg: LoopConfig, learns: bool, renderer: str) -> tuple[str, int]:
                          f"model's template is {renderer!r} (valid: renderer 'spheres', or "
                          "--size-by-thickness off --size-rounds 0)")
     auto = learns and rod
-    thickness = {"on": "on", "off": "off"}.get(cfg.size_by_thickness,
-                                               "if_elongated" if auto else "off")
-    rounds = cfg.size_rounds if cfg.size_rounds is not None else (AUTO_SIZE_ROUNDS if auto
-                                                                  else 0)
+    thickness = cfg.size_by_thickness
+    if thickness == "auto":
+        thickness = "if_elongated" if auto else "off"
+    rounds = cfg.size_rounds
+    if rounds is None:
+        rounds = AUTO_SIZE_ROUNDS if auto else 0
     return thickness, rounds
 
 

@@ -11,8 +11,8 @@ import torch
 from conftest import run_cli
 
 from inseggan_ros import checkpoint, losses
-from inseggan_ros.loop import AUTO_SIZE_ROUNDS
 from inseggan_ros.data import load_bag, load_sim_split
+from inseggan_ros.loop import AUTO_SIZE_ROUNDS
 from inseggan_ros.preprocess import PreprocessConfig
 from inseggan_ros.sim.learned import model_camera, template_scale
 from inseggan_ros.metrics import mean_miou, miou_batch
