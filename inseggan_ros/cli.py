@@ -410,6 +410,9 @@ def cmd_loop(args) -> int:
           + f"); encoder validation mIoU on the simulated scenes {enc['val'][0]['miou']:.3f} -> "
           f"{enc['best_score']:.3f}; model: {args.out}/model (tau {summary['tau']:.2f}), "
           f"card {summary['card']}")
+    if "not_by_thickness" in summary["sizing"]:
+        print(f"rod not resized to the frames' thickness: "
+              f"{summary['sizing']['not_by_thickness']}")
     if "size" in summary and summary["size"].get("left_as_is"):
         print(f"rod not resized to the frames' thickness: {summary['size']['left_as_is']}")
     elif "size" in summary:

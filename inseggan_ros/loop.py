@@ -28,7 +28,8 @@ resumes from its last checkpoint; the export writes its folder atomically):
      config's budget; a killed run resumes from out/shape/last.pt; its best.pt is the model;
   0b. size (`size_by_thickness`; by default only for a rod the loop learned itself, and only
      an elongated one): a rod resized to the thickness the user's frames show (`sizing`)
-     -> out/size/model.pt;
+     -> out/size/model.pt; not run on a folder whose piles were made without it
+     (`resume_plan`);
   1. simulate: `--scenes` labelled scenes of the learned part, with the camera, noise, bin and
      number of instances of the user's data set (its meta.json) or bag;
   2. encoder: the model's encoder fitted to them (`distill.DistillConfig` with the label losses),
@@ -427,6 +428,30 @@ def size_plan(cfg: LoopConfig, learns: bool, renderer: str) -> tuple[str, int]:
     return thickness, rounds
 
 
+def unsized_before(out: Path) -> bool:
+    """Whether the loop folder `out` already holds piles or an encoder made without the size
+    stage (a run of a version, or of settings, that did not size): sizing its rod now would
+    leave them of the unsized part."""
+    out = Path(out)
+    made = (out / "sim" / "meta.json").is_file() or (out / "encoder").is_dir()
+    return made and not (out / "size" / "size.json").is_file()
+
+
+def resume_plan(thickness: str, out: Path, explicit: bool) -> str:
+    """The size stage's plan for the loop folder `out`: as planned, unless `out` already holds
+    stages made without it (`unsized_before`). Then the default plan is dropped (the run goes on
+    as it was started; the scale rounds, which come after the piles, still run), and a stage
+    asked for (`explicit`) raises before any stage."""
+    if thickness == "off" or not unsized_before(out):
+        return thickness
+    if explicit:
+        raise ValueError(f"{out} holds piles or an encoder made without the size stage (sim/ "
+                         "or encoder/, no size/size.json): sizing the rod now would leave them "
+                         "of the unsized part; give a new --out, or resume this one with "
+                         "--size-by-thickness off")
+    return "off"
+
+
 def size_stage(file: Path, data, out: Path, cfg: LoopConfig, only_elongated: bool = False
                ) -> Path:
     """Stage 0b: the rod of `file` resized to the thickness of the parts in the user's frames
@@ -530,7 +555,9 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
 
         resolve_bag(str(bag.path), "--bag")  # a missing bag is named before anything else
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    planned = thickness
+    thickness = resume_plan(thickness, out, cfg.size_by_thickness == "on")  # raises, or
+    out.mkdir(parents=True, exist_ok=True)  # drops the default stage for an unsized folder
     seconds: dict[str, float] = {}
     stages = tqdm(total=(3 if model is not None else 4) + bool(cfg.head_iterations)
                   + bool(cfg.self_frames) + (thickness != "off") + size_rounds,
@@ -595,6 +622,9 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
                "seconds": seconds, "encoder": json.loads((encoder / "summary.json").read_text()),
                "card": str(out / "model" / "card.json"), "tau": card.get("tau")}
     summary["sizing"] = {"by_thickness": thickness, "rounds": size_rounds}
+    if planned != thickness:
+        summary["sizing"]["not_by_thickness"] = ("the folder's piles were made without the "
+                                                 "size stage")
     if thickness != "off":
         summary["size"] = json.loads((out / "size" / "size.json").read_text())
     if size_rounds:

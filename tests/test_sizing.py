@@ -9,7 +9,8 @@ from conftest import run_cli
 
 from inseggan_ros import checkpoint, sizing
 from inseggan_ros.data import load_sim_split
-from inseggan_ros.loop import AUTO_SIZE_ROUNDS, LoopConfig, size_plan, size_stage
+from inseggan_ros.loop import (AUTO_SIZE_ROUNDS, LoopConfig, resume_plan, run, size_plan,
+                               size_stage)
 from inseggan_ros.paths import resolve_model
 from inseggan_ros.segment import Segmenter
 from inseggan_ros.sim.learned import model_camera, template_scale
@@ -153,3 +154,24 @@ def test_by_default_only_a_rod_the_loop_learns_is_sized_and_a_flat_parts_is_left
     done = json.loads((tmp / "cyl" / "size.json").read_text())
     assert sizing.elongated(done["dimensions_mm_before"])
     assert done["dimensions_mm_after"][2] == pytest.approx(done["thickness_mm"], rel=1e-3)
+
+
+def test_a_folder_whose_piles_were_made_unsized_is_not_sized_under_them(cylinders, tmp):
+    """A loop folder holding piles (or an encoder) but no size/size.json was started without the
+    size stage: resumed, the default plan drops the stage (the run goes on as started), and
+    the stage asked for is refused before anything runs, naming the way out."""
+    fresh, old, sized = tmp / "fresh", tmp / "old", tmp / "sized"
+    (old / "sim").mkdir(parents=True)
+    (old / "sim" / "meta.json").write_text("{}")
+    (sized / "encoder").mkdir(parents=True)
+    (sized / "size").mkdir()
+    (sized / "size" / "size.json").write_text("{}")
+    assert resume_plan("if_elongated", fresh, explicit=False) == "if_elongated"
+    assert resume_plan("if_elongated", sized, explicit=False) == "if_elongated"
+    assert resume_plan("if_elongated", old, explicit=False) == "off"
+    assert resume_plan("off", old, explicit=False) == "off"
+    with pytest.raises(ValueError, match="made without the size stage.*--size-by-thickness off"):
+        resume_plan("on", old, explicit=True)
+    with pytest.raises(ValueError, match="made without the size stage"):
+        run(CYLINDER, cylinders, old, LoopConfig(size_by_thickness="on"), progress=False)
+    assert sorted(p.name for p in old.iterdir()) == ["sim"]  # nothing written
