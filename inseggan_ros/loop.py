@@ -437,14 +437,14 @@ def unsized_before(out: Path) -> bool:
     return made and not (out / "size" / "size.json").is_file()
 
 
-def resume_plan(thickness: str, out: Path, explicit: bool) -> str:
-    """The size stage's plan for the loop folder `out`: as planned, unless `out` already holds
-    stages made without it (`unsized_before`). Then the default plan is dropped (the run goes on
-    as it was started; the scale rounds, which come after the piles, still run), and a stage
-    asked for (`explicit`) raises before any stage."""
+def resume_plan(thickness: str, out: Path) -> str:
+    """The size stage's plan (`size_plan`) for the loop folder `out`: as planned, unless `out`
+    already holds stages made without it (`unsized_before`). Then the default plan is dropped
+    (the run goes on as it was started; the scale rounds, which come after the piles, still
+    run), and a stage asked for ("on") raises before any stage."""
     if thickness == "off" or not unsized_before(out):
         return thickness
-    if explicit:
+    if thickness == "on":
         raise ValueError(f"{out} holds piles or an encoder made without the size stage (sim/ "
                          "or encoder/, no size/size.json): sizing the rod now would leave them "
                          "of the unsized part; give a new --out, or resume this one with "
@@ -556,7 +556,7 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
         resolve_bag(str(bag.path), "--bag")  # a missing bag is named before anything else
     out = Path(out)
     planned = thickness
-    thickness = resume_plan(thickness, out, cfg.size_by_thickness == "on")  # raises, or
+    thickness = resume_plan(thickness, out)  # raises, or
     out.mkdir(parents=True, exist_ok=True)  # drops the default stage for an unsized folder
     seconds: dict[str, float] = {}
     stages = tqdm(total=(3 if model is not None else 4) + bool(cfg.head_iterations)

@@ -166,12 +166,12 @@ def test_a_folder_whose_piles_were_made_unsized_is_not_sized_under_them(cylinder
     (sized / "encoder").mkdir(parents=True)
     (sized / "size").mkdir()
     (sized / "size" / "size.json").write_text("{}")
-    assert resume_plan("if_elongated", fresh, explicit=False) == "if_elongated"
-    assert resume_plan("if_elongated", sized, explicit=False) == "if_elongated"
-    assert resume_plan("if_elongated", old, explicit=False) == "off"
-    assert resume_plan("off", old, explicit=False) == "off"
+    assert resume_plan("if_elongated", fresh) == "if_elongated"
+    assert resume_plan("if_elongated", sized) == "if_elongated"
+    assert resume_plan("if_elongated", old) == "off"
+    assert resume_plan("off", old) == "off"
     with pytest.raises(ValueError, match="made without the size stage.*--size-by-thickness off"):
-        resume_plan("on", old, explicit=True)
+        resume_plan("on", old)
     with pytest.raises(ValueError, match="made without the size stage"):
         run(CYLINDER, cylinders, old, LoopConfig(size_by_thickness="on"), progress=False)
     assert sorted(p.name for p in old.iterdir()) == ["sim"]  # nothing written
