@@ -68,10 +68,11 @@ def unpack(path: Path) -> tuple[dict, dict, dict, dict]:
 def run(args) -> int:
     tr, val, prep, info = unpack(args.packed)
     overrides = {"max_minutes": args.minutes, "seed": args.seed, "batch_size": args.batch_size,
-                 "nf": args.nf, "eval_every": args.eval_every,
+                 "nf": args.nf, "spheres": args.spheres, "eval_every": args.eval_every,
                  "checkpoint_every": args.eval_every}
     cfg = get_config(args.config, **overrides)
-    print(f"{args.config}: nf {cfg.model.nf}, batch {cfg.batch_size}, {len(tr['x'])} frames, "
+    print(f"{args.config}: nf {cfg.model.nf}, {cfg.model.renderer} renderer "
+          f"({cfg.model.spheres} spheres), batch {cfg.batch_size}, {len(tr['x'])} frames, "
           f"{args.minutes} min on {args.device}", flush=True)
     t0 = time.perf_counter()
     summary = train(cfg, tr, val, args.out, prep, info, device=args.device,
@@ -149,6 +150,7 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int)
     p.add_argument("--batch-size", type=int)
     p.add_argument("--nf", type=int)
+    p.add_argument("--spheres", type=int, help="the rod's spheres (renderer 'spheres')")
     p.add_argument("--eval-every", type=int)
     p.add_argument("--half", action="store_true", help="slim checkpoint's weights in float16")
     p.add_argument("--quiet", action="store_true")
