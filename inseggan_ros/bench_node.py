@@ -215,7 +215,8 @@ def main(argv=None) -> int:
           f"{args.seconds:.0f} s (model {last.get('model', '?')}, {last.get('device', '?')}, "
           f"Fast DDS: {profile})")
     print(f"  settings: {cfg.refine_steps} refinement iterations, {cfg.refine_hypotheses} "
-          f"starting points ({cfg.refine_keep or 'all'} refined), smoothing {cfg.smooth.iters} + "
+          f"starting points ({cfg.refine_keep or 'all'} refined, {cfg.refine_swaps} swaps), "
+          f"smoothing {cfg.smooth.iters} + "
           f"{cfg.smooth.full_res_active} at full resolution, encoder in "
           f"{last.get('encoder_precision', cfg.encoder_precision)}, superpixel thread "
           f"{args.superpixel_thread}"

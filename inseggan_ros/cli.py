@@ -483,6 +483,7 @@ def cmd_eval(args) -> int:
           f"{seg.inference.refine_steps} refinement steps x "
           f"{seg.inference.refine_hypotheses} starts"
           + (f" (best {seg.inference.refine_keep} refined)" if seg.inference.refine_keep else "")
+          + (f", {seg.inference.refine_swaps} swaps" if seg.inference.refine_swaps else "")
           + f", {seg.inference.smooth.iters} smoothing iterations")
     print(evaluate.format_table(summary))
     print(f"wrote {out / 'results.json'} and {out / 'qualitative.png'}")

@@ -160,7 +160,8 @@ def proposals(segmenter, x: np.ndarray, fg: np.ndarray, batch: int = 100) -> tup
     for i in range(0, len(x), batch):
         xb = torch.from_numpy(x[i:i + batch])
         out = infer(segmenter.G, segmenter.E, xb, refine_steps=cfg.refine_steps,
-                    hypotheses=cfg.refine_hypotheses, keep=cfg.refine_keep)
+                    hypotheses=cfg.refine_hypotheses, keep=cfg.refine_keep,
+                    swaps=cfg.refine_swaps)
         renders.append(out["renders"])
         labels.append(labels_from_renders(out["renders"], segmenter.tau,
                                           torch.from_numpy(fg[i:i + batch])))

@@ -74,7 +74,8 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, inference=None,
         renders = torch.cat([infer(seg.G, seg.encoder(inference.encoder_precision), x[i:i + 50],
                                    refine_steps=inference.refine_steps,
                                    hypotheses=inference.refine_hypotheses,
-                                   keep=inference.refine_keep)["renders"]
+                                   keep=inference.refine_keep,
+                                   swaps=inference.refine_swaps)["renders"]
                              for i in range(0, len(x), 50)])
         tau, scores = calibrate_tau(renders, torch.from_numpy(val["fg"]), val["labels"])
     seg.tau = tau
@@ -479,13 +480,15 @@ def _settings_text(d: dict) -> str:
 
     cfg = InferenceConfig.from_dict(d)
     smooth = cfg.smooth
+    swaps = (f", up to {cfg.refine_swaps} instances of the other starting points swapped in"
+             if cfg.refine_swaps and cfg.refine_hypotheses > 1 else "")
     if cfg.refine_steps == 0:
         start = (f"no refinement, the best-fitting of {cfg.refine_hypotheses} starting points"
-                 if cfg.refine_hypotheses > 1 else "no refinement")
+                 f"{swaps}" if cfg.refine_hypotheses > 1 else "no refinement")
     else:
         keep = f", the best-fitting {cfg.refine_keep} refined" if cfg.refine_keep else ""
         start = (f"{cfg.refine_steps} refinement iterations from {cfg.refine_hypotheses} starting "
-                 f"point(s){keep}")
+                 f"point(s){keep}{swaps}")
     precision = ("" if cfg.encoder_precision == "float32"
                  else f", encoder in {cfg.encoder_precision}")
     head = ", labels from the label head" if cfg.label_head == "on" else ""

@@ -258,9 +258,42 @@ def _fit_loss(G, pose: torch.Tensor, target: torch.Tensor, template) -> torch.Te
                       per_frame=True).reshape(B, H)
 
 
+def _swap_in(G, pose: torch.Tensor, target: torch.Tensor, template, rounds: int) -> torch.Tensor:
+    """(B, H, n, 6) starting points, (B, 1, s, s) inputs -> (B, n, 6): the best-fitting start,
+    into which, `rounds` times, the single instance of any start that lowers the fit loss most
+    is swapped for one of its instances (where one lowers it at all). The starts often read
+    different parts of a pile right: one the bolt on the left, another the one on the right
+    (docs/experiments.md, 2026-11-27)."""
+    B, H, n, _ = pose.shape
+    s = target.shape[-1]
+    renders = G.render_poses(pose.reshape(B * H, n, 6), s, template).reshape(B, H, n, s, s)
+    loss = pyramid_l1(renders.amax(2).reshape(B * H, 1, s, s), target.repeat_interleave(H, 0),
+                      3, per_frame=True).reshape(B, H)
+    frames = torch.arange(B, device=pose.device)
+    best = loss.argmin(1)
+    cur, cur_r = pose[frames, best].clone(), renders[frames, best].clone()
+    cur_loss = loss[frames, best]
+    cand, cand_r = pose.reshape(B, H * n, 6), renders.reshape(B, H * n, s, s)
+    slots = torch.arange(n, device=pose.device)
+    for _ in range(rounds):
+        # the composite without instance i (B, n, s, s), then with each candidate in its place
+        without = torch.stack([cur_r[:, slots != i].amax(1) for i in range(n)], 1)
+        comp = torch.maximum(without[:, :, None], cand_r[:, None])  # (B, n, H n, s, s)
+        trial = pyramid_l1(comp.reshape(-1, 1, s, s), target.repeat_interleave(n * H * n, 0), 3,
+                           per_frame=True).reshape(B, n * H * n)
+        trial_loss, which = trial.min(1)
+        better = trial_loss < cur_loss
+        if not better.any():
+            break
+        f, slot, c = frames[better], (which // (H * n))[better], (which % (H * n))[better]
+        cur[f, slot], cur_r[f, slot] = cand[f, c], cand_r[f, c]
+        cur_loss = torch.where(better, trial_loss, cur_loss)
+    return cur
+
+
 @torch.no_grad()
 def refine_poses(G, pose: torch.Tensor, x: torch.Tensor, steps: int, reseeds: int = 2,
-                 size: int = 32, keep: int = 0) -> torch.Tensor:
+                 size: int = 32, keep: int = 0, swaps: int = 0) -> torch.Tensor:
     """Analysis by synthesis at test time, on the poses themselves (generators with explicit
     templates): `steps` Levenberg-Marquardt iterations in all (`_lm_fit`) on the n poses of
     each frame so that the z-buffered composite matches the input at size x size (L1 over a
@@ -274,7 +307,9 @@ def refine_poses(G, pose: torch.Tensor, x: torch.Tensor, steps: int, reseeds: in
     before refining (`keep` 1) costs one render per start instead of a refinement per start.
     Levenberg-Marquardt rather than Adam: at equal time it fits better and keeps gaining with
     iterations; fitting each rod's axis, with image-gradient Jacobian columns for x, y and yaw,
-    halves its cost at the same quality (docs/experiments.md, 2026-11-21). -> (B, n, 6) poses."""
+    halves its cost at the same quality (docs/experiments.md, 2026-11-21). `swaps` (with `keep`
+    1): before the fit, up to that many instances of the other starts swapped into the chosen
+    one where each lowers the fit loss (`_swap_in`). -> (B, n, 6) poses."""
     B, H, n, _ = pose.shape
     if steps > 0 and not isinstance(G, SphereGenerator):
         raise ValueError(f"refine_steps {steps}: the Levenberg-Marquardt pose fit moves a rod's "
@@ -283,7 +318,11 @@ def refine_poses(G, pose: torch.Tensor, x: torch.Tensor, steps: int, reseeds: in
     target = F.adaptive_avg_pool2d(x, size)
     if keep < 0:
         raise ValueError(f"keep must be >= 0 (0 = all), got {keep}")
-    if 0 < keep < H:
+    if swaps < 0 or (swaps and keep != 1):
+        raise ValueError(f"swaps {swaps}: valid: 0, or > 0 with keep 1 (got keep {keep})")
+    if swaps and H > 1:
+        pose, H = _swap_in(G, pose, target, template, swaps)[:, None], 1
+    elif 0 < keep < H:
         best = _fit_loss(G, pose, target, template).argsort(1)[:, :keep]
         pose, H = pose[torch.arange(B)[:, None], best], keep
     flat = pose.reshape(B * H, n, 6)

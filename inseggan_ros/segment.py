@@ -51,20 +51,21 @@ def _gauss(x: torch.Tensor, sigma: float = 0.8) -> torch.Tensor:
 
 @torch.no_grad()
 def infer(G, E, x: torch.Tensor, filtered: bool | None = None, refine_steps: int = 0,
-          hypotheses: int = 1, keep: int = 0) -> dict:
+          hypotheses: int = 1, keep: int = 0, swaps: int = 0) -> dict:
     """(B, 1, 64, 64) inputs -> single-instance renders (B, n, 64, 64), reconstruction, and the
     codes ("z") or, with test-time refinement, the poses ("pose").
 
     `filtered` (default: for the learned renderer only, whose renders are noisy; the explicit
     templates render clean edges that a blur would only soften) median- and Gauss-filters
-    every render, as the reference code does. `refine_steps`, `hypotheses`, `keep`: test-time
-    refinement (`refine_poses` from `start_poses`, also with 0 steps when there are several
-    starts to choose from; for the learned renderer `refine` on the codes, from the encoder's
-    codes only)."""
+    every render, as the reference code does. `refine_steps`, `hypotheses`, `keep`, `swaps`:
+    test-time refinement (`refine_poses` from `start_poses`, also with 0 steps when there are
+    several starts to choose from; for the learned renderer `refine` on the codes, from the
+    encoder's codes only)."""
     explicit = isinstance(G, TemplateGenerator)
     if explicit and (refine_steps > 0 or hypotheses > 1):
         # the input and its symmetric images through the encoder in one batch
-        pose = refine_poses(G, start_poses(G, E, x, hypotheses), x, refine_steps, keep=keep)
+        pose = refine_poses(G, start_poses(G, E, x, hypotheses), x, refine_steps, keep=keep,
+                            swaps=swaps)
         renders = G.render_poses(pose)
         return {"pose": pose, "renders": renders, "reconstruction": G.zbuffer(renders)}
     z = E(x)
@@ -252,7 +253,7 @@ class Segmenter:
         x = torch.as_tensor(x, dtype=torch.float32, device=self.device)
         out = infer(self.G, self.encoder(cfg.encoder_precision), x,
                     refine_steps=cfg.refine_steps, hypotheses=cfg.refine_hypotheses,
-                    keep=cfg.refine_keep)
+                    keep=cfg.refine_keep, swaps=cfg.refine_swaps)
         fg_t = (x[:, 0] > -1 + 1e-4) if fg is None else torch.as_tensor(fg, device=self.device)
         labels = labels_from_renders(out["renders"], tau, fg_t)
         if cfg.label_head == "on":

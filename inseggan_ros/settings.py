@@ -65,7 +65,7 @@ class SmoothConfig:
                                  f"valid: {valid}")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)  # by name only: settings are added over time
 class InferenceConfig:
     """How a model segments at test time (`segment.Segmenter`): the pose fit from several
     starting points (`refine.py`), label smoothing, the encoder's arithmetic."""
@@ -79,6 +79,11 @@ class InferenceConfig:
     refine_keep: int = field(default=0, metadata=_doc(
         "how many of the starting points, the best-fitting first, are refined (0 = all; the "
         "refinement's time grows about in proportion)", 0, 32))
+    refine_swaps: int = field(default=0, metadata=_doc(
+        "after the choice of the starting point, up to this many single instances of the "
+        "other starting points swapped into it, each where it explains the input better "
+        "(0 = off; needs refine_keep 1)",
+        0, 16))
     smooth: SmoothConfig = SmoothConfig(iters=0)
     encoder_precision: str = field(default="float32", metadata=_doc(
         "the encoder's arithmetic: float32, bfloat16, or auto (bfloat16 where the CPU or GPU "
@@ -101,6 +106,10 @@ class InferenceConfig:
                 ("refine_steps", self.refine_steps >= 0, ">= 0"),
                 ("refine_hypotheses", self.refine_hypotheses >= 1, ">= 1"),
                 ("refine_keep", self.refine_keep >= 0, ">= 0 (0 = all starting points)"),
+                ("refine_swaps", self.refine_swaps >= 0, ">= 0 (0 = off)"),
+                ("refine_swaps", self.refine_swaps == 0 or self.refine_keep == 1,
+                 f"0 unless refine_keep is 1 (it is {self.refine_keep}: the swaps go into the "
+                 "one starting point kept)"),
                 ("superpixel_scale", self.superpixel_scale >= 0, ">= 0 (0 = off)"),
                 ("split_scale", self.split_scale >= 0, ">= 0 (0 = off)"),
                 ("encoder_precision", self.encoder_precision in PRECISIONS,

@@ -1,4 +1,5 @@
 """Model modules: shapes, gradients, pose spread; losses against brute force."""
+from dataclasses import replace
 import itertools
 import math
 
@@ -347,12 +348,63 @@ def test_refining_only_the_best_fitting_start():
     torch.testing.assert_close(refine_poses(G, starts, x, 6, keep=0), refine_poses(G, starts, x, 6))
 
 
+def test_instances_swapped_in_from_other_starts():
+    """Three starts that each read a different one of three rods right: the best of them alone
+    explains one rod, two swaps bring the other two in from the other starts. The fit loss
+    never rises with more swaps, 0 swaps is the plain choice, and swaps need keep 1."""
+    from inseggan_ros.model import make_generator
+    from inseggan_ros.refine import _fit_loss, refine_poses
+
+    torch.manual_seed(2)
+    cfg = ModelConfig(renderer="spheres", composite="zbuffer", spheres=4, **SMALL)
+    G = make_generator(cfg).eval()
+    with torch.no_grad():
+        G.length.fill_(0.5)
+        G.log_radius.fill_(math.log(0.2))
+        G.lift.fill_(0.2)
+        truth = torch.tensor([[-0.5, -0.5, 0.3, 0.0, 0.0, 0.0], [0.5, 0.0, 1.2, 0.0, 0.0, 0.0],
+                              [-0.3, 0.5, -0.7, 0.0, 0.0, 0.0]]).repeat(2, 1, 1)  # (2, 3, 6)
+        x = G.zbuffer(G.render_poses(truth))
+        off = torch.tensor([0.9, 0.9, 0.0, 0.0, 0.0, 0.0])  # a rod in the bin's far corner
+        starts = off.repeat(2, 3, 3, 1)  # (B, H, n, 6): start h has rod h right
+        for h in range(3):
+            starts[:, h, h] = truth[:, h]
+        target = F.adaptive_avg_pool2d(x, 32)
+        template = G.spheres()
+
+        def fit(pose):
+            return _fit_loss(G, pose[:, None], target, template)[:, 0]
+
+        plain = refine_poses(G, starts, x, 0, keep=1)
+        torch.testing.assert_close(refine_poses(G, starts, x, 0, keep=1, swaps=0), plain)
+        by_swaps = [fit(refine_poses(G, starts, x, 0, keep=1, swaps=k)) for k in range(4)]
+        for before, after in zip(by_swaps, by_swaps[1:]):
+            assert (after <= before + 1e-6).all()
+        assert (by_swaps[2] <= fit(truth) + 1e-6).all()  # every rod explained after two
+        assert (by_swaps[2] < _fit_loss(G, starts, target, template).min(1).values).all()
+        with pytest.raises(ValueError, match="keep 1"):
+            refine_poses(G, starts, x, 0, keep=0, swaps=2)
+        # with a fit after them: the swapped set is what is refined
+        torch.testing.assert_close(
+            refine_poses(G, starts, x, 4, keep=1, swaps=2),
+            refine_poses(G, refine_poses(G, starts, x, 0, keep=1, swaps=2)[:, None], x, 4))
+    from inseggan_ros.settings import InferenceConfig
+
+    InferenceConfig(refine_hypotheses=8, refine_keep=1, refine_swaps=4)
+    with pytest.raises(ValueError, match="refine_swaps.*refine_keep"):
+        InferenceConfig(refine_hypotheses=8, refine_keep=0, refine_swaps=4)
+    with pytest.raises(ValueError, match="refine_swaps"):
+        InferenceConfig(refine_keep=1, refine_swaps=-1)
+
+
 def test_inference_config_validates_and_reads_old_checkpoints():
     from inseggan_ros.settings import InferenceConfig, SmoothConfig, apply
 
     old = InferenceConfig.from_dict({"refine_steps": 30, "hypotheses": 4})  # pre-smoothing models
-    assert old == InferenceConfig(30, 4, 0, SmoothConfig(iters=0))
-    cfg = InferenceConfig(48, 8, 2, SmoothConfig(iters=20, full_res_iters=0))
+    assert old == InferenceConfig(refine_steps=30, refine_hypotheses=4, refine_keep=0,
+                                  smooth=SmoothConfig(iters=0))
+    cfg = InferenceConfig(refine_steps=48, refine_hypotheses=8, refine_keep=2,
+                          smooth=SmoothConfig(iters=20, full_res_iters=0))
     assert InferenceConfig.from_dict(cfg.to_dict()) == cfg
     assert apply(cfg, {"smooth_iters": 5}).smooth == SmoothConfig(iters=5, full_res_iters=0)
     for bad, match in (({"refine_steps": -1}, "refine_steps -1 invalid"),
@@ -382,7 +434,8 @@ def test_settings_have_one_name_as_field_parameter_and_flag():
     from inseggan_ros import settings
 
     names = [s.name for s in settings.exposed()]
-    assert names == ["refine_steps", "refine_hypotheses", "refine_keep", "smooth_iters",
+    assert names == ["refine_steps", "refine_hypotheses", "refine_keep", "refine_swaps",
+                     "smooth_iters",
                      "smooth_full_res_iters", "encoder_precision", "superpixel_scale",
                      "split_scale", "label_head"]
     parser = argparse.ArgumentParser()
@@ -411,10 +464,10 @@ def test_a_bfloat16_encoder_gives_the_float32_labels():
     torch.manual_seed(0)
     with torch.no_grad():
         x = seg.G.zbuffer(seg.G.render_instances(torch.randn(6, 5, seg.model_cfg.latent_dim)))
-    cfg = InferenceConfig(0, 8, 1)
+    cfg = InferenceConfig(refine_steps=0, refine_hypotheses=8, refine_keep=1)
     a = seg.segment_batch(x, settings=cfg)["labels"]
     b = seg.segment_batch(
-        x, settings=InferenceConfig(0, 8, 1, encoder_precision="bfloat16"))["labels"]
+        x, settings=replace(cfg, encoder_precision="bfloat16"))["labels"]
     assert (a != b).float().mean() < 0.01
     assert seg.resolve_precision("auto") == ("bfloat16" if native_bfloat16("cpu") else "float32")
     assert seg.encoder("bfloat16") is seg.encoder("bfloat16")  # one copy of the weights

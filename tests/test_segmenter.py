@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import BAGS, REPO, get_params, installed_executable, set_param, set_params
+from conftest import BAGS, REPO, get_params, installed_executable, set_params
 
 from inseggan_ros import bags, image_codec
 from inseggan_ros.baselines import kmeans
@@ -268,6 +268,12 @@ def test_shipped_parameter_files_set_the_segmenter(profile):
     seg = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert get_params(f"{ns}/segmenter", *wanted, "tau") == {**wanted, "tau": -0.3}
-        assert set_param(f"{ns}/segmenter", "refine_keep", "-1").startswith("rejected")  # 0..32
+        # swaps go into the one starting point kept: refused where the file refines several
+        swaps, keep = set_params(f"{ns}/segmenter", ("refine_swaps", "3"), ("refine_keep", "-1"))
+        assert keep.startswith("rejected")  # 0..32
+        if wanted["refine_keep"] == 1:
+            assert swaps == "ok"
+        else:
+            assert swaps.startswith("rejected") and "refine_keep" in swaps, swaps
     finally:
         assert stop(seg) == 0
