@@ -485,10 +485,13 @@ def _settings_text(d: dict) -> str:
     if cfg.refine_steps == 0:
         start = (f"no refinement, the best-fitting of {cfg.refine_hypotheses} starting points"
                  f"{swaps}" if cfg.refine_hypotheses > 1 else "no refinement")
+    elif cfg.refine_keep == 1 and cfg.refine_hypotheses > 1:
+        start = (f"the best-fitting of {cfg.refine_hypotheses} starting points{swaps}, then "
+                 f"{cfg.refine_steps} refinement iterations")
     else:
         keep = f", the best-fitting {cfg.refine_keep} refined" if cfg.refine_keep else ""
         start = (f"{cfg.refine_steps} refinement iterations from {cfg.refine_hypotheses} starting "
-                 f"point(s){keep}{swaps}")
+                 f"point(s){keep}")
     precision = ("" if cfg.encoder_precision == "float32"
                  else f", encoder in {cfg.encoder_precision}")
     head = ", labels from the label head" if cfg.label_head == "on" else ""
