@@ -490,8 +490,10 @@ def _settings_text(d: dict) -> str:
                  f"{cfg.refine_steps} refinement iterations")
     else:
         keep = f", the best-fitting {cfg.refine_keep} refined" if cfg.refine_keep else ""
+        after = (f", then up to {cfg.refine_swaps} instances of the other refined starting points "
+                 "swapped in" if cfg.refine_swaps and cfg.refine_hypotheses > 1 else "")
         start = (f"{cfg.refine_steps} refinement iterations from {cfg.refine_hypotheses} starting "
-                 f"point(s){keep}")
+                 f"point(s){keep}{after}")
     precision = ("" if cfg.encoder_precision == "float32"
                  else f", encoder in {cfg.encoder_precision}")
     head = ", labels from the label head" if cfg.label_head == "on" else ""

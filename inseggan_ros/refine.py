@@ -263,7 +263,8 @@ def _swap_in(G, pose: torch.Tensor, target: torch.Tensor, template, rounds: int)
     into which, `rounds` times, the single instance of any start that lowers the fit loss most
     is swapped for one of its instances (where one lowers it at all). The starts often read
     different parts of a pile right: one the bolt on the left, another the one on the right
-    (docs/experiments.md, 2026-11-27)."""
+    (docs/experiments.md, 2026-11-27). With 0 rounds: the best-fitting start, as
+    `_fit_loss(...).argmin` chooses it."""
     B, H, n, _ = pose.shape
     s = target.shape[-1]
     renders = G.render_poses(pose.reshape(B * H, n, 6), s, template).reshape(B, H, n, s, s)
@@ -307,9 +308,10 @@ def refine_poses(G, pose: torch.Tensor, x: torch.Tensor, steps: int, reseeds: in
     before refining (`keep` 1) costs one render per start instead of a refinement per start.
     Levenberg-Marquardt rather than Adam: at equal time it fits better and keeps gaining with
     iterations; fitting each rod's axis, with image-gradient Jacobian columns for x, y and yaw,
-    halves its cost at the same quality (docs/experiments.md, 2026-11-21). `swaps` (with `keep`
-    1): before the fit, up to that many instances of the other starts swapped into the chosen
-    one where each lowers the fit loss (`_swap_in`). -> (B, n, 6) poses."""
+    halves its cost at the same quality (docs/experiments.md, 2026-11-21). `swaps`: where the
+    best-fitting start is chosen, up to that many single instances of the other starts swapped
+    into it, each where it lowers the fit loss (`_swap_in`): with `keep` 1 before the fit, from
+    the unfitted starts; else after it, from the fitted ones. -> (B, n, 6) poses."""
     B, H, n, _ = pose.shape
     if steps > 0 and not isinstance(G, SphereGenerator):
         raise ValueError(f"refine_steps {steps}: the Levenberg-Marquardt pose fit moves a rod's "
@@ -318,9 +320,9 @@ def refine_poses(G, pose: torch.Tensor, x: torch.Tensor, steps: int, reseeds: in
     target = F.adaptive_avg_pool2d(x, size)
     if keep < 0:
         raise ValueError(f"keep must be >= 0 (0 = all), got {keep}")
-    if swaps < 0 or (swaps and keep != 1):
-        raise ValueError(f"swaps {swaps}: valid: 0, or > 0 with keep 1 (got keep {keep})")
-    if swaps and H > 1:
+    if swaps < 0:
+        raise ValueError(f"swaps must be >= 0 (0 = off), got {swaps}")
+    if swaps and keep == 1 and H > 1:
         pose, H = _swap_in(G, pose, target, template, swaps)[:, None], 1
     elif 0 < keep < H:
         best = _fit_loss(G, pose, target, template).argsort(1)[:, :keep]
@@ -339,4 +341,6 @@ def refine_poses(G, pose: torch.Tensor, x: torch.Tensor, steps: int, reseeds: in
     pose = flat.reshape(B, H, n, 6)
     if H == 1:
         return pose[:, 0]
+    if swaps:
+        return _swap_in(G, pose, target, template, swaps)
     return pose[torch.arange(B), _fit_loss(G, pose, target, template).argmin(1)]

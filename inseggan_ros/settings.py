@@ -80,10 +80,9 @@ class InferenceConfig:
         "how many of the starting points, the best-fitting first, are refined (0 = all; the "
         "refinement's time grows about in proportion)", 0, 32))
     refine_swaps: int = field(default=0, metadata=_doc(
-        "after the choice of the starting point, up to this many single instances of the "
-        "other starting points swapped into it, each where it explains the input better "
-        "(0 = off; needs refine_keep 1)",
-        0, 16))
+        "where the best-fitting starting point is chosen, up to this many single instances of "
+        "the other starting points swapped into it, each where it explains the input better "
+        "(with refine_keep 1 before the refinement, else after it; 0 = off)", 0, 16))
     smooth: SmoothConfig = SmoothConfig(iters=0)
     encoder_precision: str = field(default="float32", metadata=_doc(
         "the encoder's arithmetic: float32, bfloat16, or auto (bfloat16 where the CPU or GPU "
@@ -107,9 +106,6 @@ class InferenceConfig:
                 ("refine_hypotheses", self.refine_hypotheses >= 1, ">= 1"),
                 ("refine_keep", self.refine_keep >= 0, ">= 0 (0 = all starting points)"),
                 ("refine_swaps", self.refine_swaps >= 0, ">= 0 (0 = off)"),
-                ("refine_swaps", self.refine_swaps == 0 or self.refine_keep == 1,
-                 f"0 unless refine_keep is 1 (it is {self.refine_keep}: the swaps go into the "
-                 "one starting point kept)"),
                 ("superpixel_scale", self.superpixel_scale >= 0, ">= 0 (0 = off)"),
                 ("split_scale", self.split_scale >= 0, ">= 0 (0 = off)"),
                 ("encoder_precision", self.encoder_precision in PRECISIONS,

@@ -351,7 +351,8 @@ def test_refining_only_the_best_fitting_start():
 def test_instances_swapped_in_from_other_starts():
     """Three starts that each read a different one of three rods right: the best of them alone
     explains one rod, two swaps bring the other two in from the other starts. The fit loss
-    never rises with more swaps, 0 swaps is the plain choice, and swaps need keep 1."""
+    never rises with more swaps, and 0 swaps is the plain choice. With keep 1 the swaps come
+    before the fit; with every start fitted (keep 0), after it, from the fitted starts."""
     from inseggan_ros.model import make_generator
     from inseggan_ros.refine import _fit_loss, refine_poses
 
@@ -382,18 +383,21 @@ def test_instances_swapped_in_from_other_starts():
             assert (after <= before + 1e-6).all()
         assert (by_swaps[2] <= fit(truth) + 1e-6).all()  # every rod explained after two
         assert (by_swaps[2] < _fit_loss(G, starts, target, template).min(1).values).all()
-        with pytest.raises(ValueError, match="keep 1"):
-            refine_poses(G, starts, x, 0, keep=0, swaps=2)
-        # with a fit after them: the swapped set is what is refined
+        with pytest.raises(ValueError, match="swaps"):
+            refine_poses(G, starts, x, 0, keep=1, swaps=-1)
+        # keep 1 and a fit: the swapped set is what is refined
         torch.testing.assert_close(
             refine_poses(G, starts, x, 4, keep=1, swaps=2),
             refine_poses(G, refine_poses(G, starts, x, 0, keep=1, swaps=2)[:, None], x, 4))
+        # keep 0: without a fit the same swaps; with one, never worse than the fitted choice
+        torch.testing.assert_close(refine_poses(G, starts, x, 0, keep=0, swaps=2),
+                                   refine_poses(G, starts, x, 0, keep=1, swaps=2))
+        fitted = fit(refine_poses(G, starts, x, 4, keep=0))
+        assert (fit(refine_poses(G, starts, x, 4, keep=0, swaps=2)) <= fitted + 1e-6).all()
     from inseggan_ros.settings import InferenceConfig
 
-    InferenceConfig(refine_hypotheses=8, refine_keep=1, refine_swaps=4)
-    with pytest.raises(ValueError, match="refine_swaps.*refine_keep"):
-        InferenceConfig(refine_hypotheses=8, refine_keep=0, refine_swaps=4)
-    with pytest.raises(ValueError, match="refine_swaps"):
+    InferenceConfig(refine_hypotheses=8, refine_keep=0, refine_swaps=4)
+    with pytest.raises(ValueError, match="refine_swaps -1 invalid"):
         InferenceConfig(refine_keep=1, refine_swaps=-1)
 
 
