@@ -348,21 +348,29 @@ def test_refining_only_the_best_fitting_start():
     torch.testing.assert_close(refine_poses(G, starts, x, 6, keep=0), refine_poses(G, starts, x, 6))
 
 
+def _rod(length: float, radius: float):
+    """A small rod of 4 spheres of a known length and radius, resting on the floor, in eval."""
+    from inseggan_ros.model import make_generator
+
+    G = make_generator(ModelConfig(renderer="spheres", composite="zbuffer", spheres=4,
+                                   **SMALL)).eval()
+    with torch.no_grad():
+        G.length.fill_(length)
+        G.log_radius.fill_(math.log(radius))
+        G.lift.fill_(radius)
+    return G
+
+
 def test_instances_swapped_in_from_other_starts():
     """Three starts that each read a different one of three rods right: the best of them alone
     explains one rod, two swaps bring the other two in from the other starts. The fit loss
     never rises with more swaps, and 0 swaps is the plain choice. With keep 1 the swaps come
     before the fit; with every start fitted (keep 0), after it, from the fitted starts."""
-    from inseggan_ros.model import make_generator
     from inseggan_ros.refine import _fit_loss, refine_poses
 
     torch.manual_seed(2)
-    cfg = ModelConfig(renderer="spheres", composite="zbuffer", spheres=4, **SMALL)
-    G = make_generator(cfg).eval()
+    G = _rod(length=0.5, radius=0.2)
     with torch.no_grad():
-        G.length.fill_(0.5)
-        G.log_radius.fill_(math.log(0.2))
-        G.lift.fill_(0.2)
         truth = torch.tensor([[-0.5, -0.5, 0.3, 0.0, 0.0, 0.0], [0.5, 0.0, 1.2, 0.0, 0.0, 0.0],
                               [-0.3, 0.5, -0.7, 0.0, 0.0, 0.0]]).repeat(2, 1, 1)  # (2, 3, 6)
         x = G.zbuffer(G.render_poses(truth))
@@ -482,16 +490,11 @@ def test_levenberg_marquardt_refinement_recovers_known_poses():
     """Frames drawn from known poses, fitted from nudged poses: the fitting loss never rises
     from one iteration to the next, and the fit ends far closer to the frames than it began
     (the scene's renders match; poses themselves are ambiguous under the rod's symmetry)."""
-    from inseggan_ros.model import make_generator
     from inseggan_ros.refine import _lm_fit, _pyramid_features
 
     torch.manual_seed(1)
-    cfg = ModelConfig(renderer="spheres", composite="zbuffer", spheres=4, **SMALL)
-    G = make_generator(cfg).eval()
+    G = _rod(length=0.6, radius=0.25)
     with torch.no_grad():
-        G.length.fill_(0.6)
-        G.log_radius.fill_(math.log(0.25))
-        G.lift.fill_(0.25)
         truth = torch.randn(6, 3, 6) * torch.tensor([0.3, 0.3, 1.5, 0.5, 0.5, 0.02])
         template = G.spheres()
         target = _pyramid_features(G.render_poses(truth, 32, template).amax(1, keepdim=True))
