@@ -71,8 +71,9 @@ def run(args) -> int:
                  "nf": args.nf, "spheres": args.spheres, "eval_every": args.eval_every,
                  "checkpoint_every": args.eval_every}
     cfg = get_config(args.config, **overrides)
-    print(f"{args.config}: nf {cfg.model.nf}, {cfg.model.renderer} renderer "
-          f"({cfg.model.spheres} spheres), batch {cfg.batch_size}, {len(tr['x'])} frames, "
+    rod = f" ({cfg.model.spheres} spheres)" if cfg.model.renderer == "spheres" else ""
+    print(f"{args.config}: nf {cfg.model.nf}, {cfg.model.renderer} renderer{rod}, "
+          f"batch {cfg.batch_size}, {len(tr['x'])} frames, "
           f"{args.minutes} min on {args.device}", flush=True)
     t0 = time.perf_counter()
     summary = train(cfg, tr, val, args.out, prep, info, device=args.device,
