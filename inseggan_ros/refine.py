@@ -249,13 +249,21 @@ def _lm_fit(G, pose: torch.Tensor, target_features: torch.Tensor, iters: int, si
     return pose_from_axis(axis, t)
 
 
+def _composite_loss(composite: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """(B K, 1, s, s) composites, K for each frame in turn, (B, 1, s, s) inputs -> (B, K): how
+    badly each explains its frame (`pyramid_l1` over 3 levels)."""
+    B = len(target)
+    K = len(composite) // B
+    return pyramid_l1(composite, target.repeat_interleave(K, dim=0), 3,
+                      per_frame=True).reshape(B, K)
+
+
 def _fit_loss(G, pose: torch.Tensor, target: torch.Tensor, template) -> torch.Tensor:
     """(B, H, n, 6) poses, (B, 1, s, s) inputs -> (B, H): how badly each hypothesis explains
-    its frame (`pyramid_l1` of the z-buffered renders at the input's size)."""
+    its frame (`_composite_loss` of the z-buffered renders at the input's size)."""
     B, H, n, _ = pose.shape
     renders = G.render_poses(pose.reshape(B * H, n, 6), target.shape[-1], template)
-    return pyramid_l1(G.zbuffer(renders), target.repeat_interleave(H, dim=0), 3,
-                      per_frame=True).reshape(B, H)
+    return _composite_loss(G.zbuffer(renders), target)
 
 
 def _swap_in(G, pose: torch.Tensor, target: torch.Tensor, template, rounds: int) -> torch.Tensor:
@@ -267,9 +275,9 @@ def _swap_in(G, pose: torch.Tensor, target: torch.Tensor, template, rounds: int)
     `_fit_loss(...).argmin` chooses it."""
     B, H, n, _ = pose.shape
     s = target.shape[-1]
-    renders = G.render_poses(pose.reshape(B * H, n, 6), s, template).reshape(B, H, n, s, s)
-    loss = pyramid_l1(renders.amax(2).reshape(B * H, 1, s, s), target.repeat_interleave(H, 0),
-                      3, per_frame=True).reshape(B, H)
+    renders = G.render_poses(pose.reshape(B * H, n, 6), s, template)
+    loss = _composite_loss(G.zbuffer(renders), target)  # (B, H), as `_fit_loss`
+    renders = renders.reshape(B, H, n, s, s)
     frames = torch.arange(B, device=pose.device)
     best = loss.argmin(1)
     cur, cur_r = pose[frames, best].clone(), renders[frames, best].clone()
@@ -280,8 +288,7 @@ def _swap_in(G, pose: torch.Tensor, target: torch.Tensor, template, rounds: int)
         # the composite without instance i (B, n, s, s), then with each candidate in its place
         without = torch.stack([cur_r[:, slots != i].amax(1) for i in range(n)], 1)
         comp = torch.maximum(without[:, :, None], cand_r[:, None])  # (B, n, H n, s, s)
-        trial = pyramid_l1(comp.reshape(-1, 1, s, s), target.repeat_interleave(n * H * n, 0), 3,
-                           per_frame=True).reshape(B, n * H * n)
+        trial = _composite_loss(comp.reshape(-1, 1, s, s), target)  # (B, n H n)
         trial_loss, which = trial.min(1)
         better = trial_loss < cur_loss
         if not better.any():
