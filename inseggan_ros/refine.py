@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 from scipy.ndimage import distance_transform_edt, label
 
-from .losses import pyramid_l1
+from .losses import pool2x2, pyramid_l1
 from .model import SphereGenerator, pose_from_axis, rodrigues
 from .symmetry import SYMMETRIES, map_poses, map_rotations, symmetry_matrix, transform_image
 
@@ -148,7 +148,7 @@ def _pyramid_features(img: torch.Tensor, levels: int = 3) -> torch.Tensor:
     out = []
     for level in range(levels):
         if level:
-            img = F.avg_pool2d(img, 2)
+            img = pool2x2(img)
         out.append(img.flatten(1) / img.shape[-1])
     return torch.cat(out, 1)
 
@@ -249,13 +249,19 @@ def _lm_fit(G, pose: torch.Tensor, target_features: torch.Tensor, iters: int, si
     return pose_from_axis(axis, t)
 
 
-def _composite_loss(composite: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+def _composite_loss(composite: torch.Tensor, target: torch.Tensor, levels: int = 3
+                    ) -> torch.Tensor:
     """(B K, 1, s, s) composites, K for each frame in turn, (B, 1, s, s) inputs -> (B, K): how
-    badly each explains its frame (`pyramid_l1` over 3 levels)."""
-    B = len(target)
-    K = len(composite) // B
-    return pyramid_l1(composite, target.repeat_interleave(K, dim=0), 3,
-                      per_frame=True).reshape(B, K)
+    badly each explains its frame (`pyramid_l1` over 3 levels, per frame; the same numbers,
+    with each input's pyramid made once for its K composites instead of K times)."""
+    B, s = len(target), target.shape[-1]
+    a, b = composite.reshape(B, -1, s, s), target.reshape(B, 1, s, s)
+    loss = 0.0
+    for level in range(levels):
+        if level:
+            a, b = pool2x2(a), pool2x2(b)
+        loss = loss + (a - b).abs().flatten(2).mean(2)
+    return loss / levels
 
 
 def _fit_loss(G, pose: torch.Tensor, target: torch.Tensor, template) -> torch.Tensor:

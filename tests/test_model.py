@@ -261,6 +261,26 @@ def test_pyramid_l1_per_frame_averages_to_the_batch_loss():
     assert per[1].item() == pytest.approx(losses.pyramid_l1(a[1:2], b[1:2], 3).item(), rel=1e-6)
 
 
+def test_fast_pooling_gives_the_same_numbers_as_avg_pool2d():
+    """`pool2x2` (the test-time fit's pooling) is `F.avg_pool2d(x, 2)` bit for bit, odd sides
+    included; `refine._composite_loss`, which pools each input once for all its composites, is
+    `pyramid_l1` per frame against the input repeated, bit for bit."""
+    from inseggan_ros.refine import _composite_loss
+
+    gen = torch.Generator().manual_seed(0)
+    for shape in [(200, 1, 32, 32), (3, 5, 16, 16), (2, 1, 7, 9), (1, 1, 64, 64)]:
+        x = torch.randn(shape, generator=gen) * 100
+        assert torch.equal(losses.pool2x2(x), F.avg_pool2d(x, 2))
+    B, K = 3, 40
+    composite = torch.rand(B * K, 1, 32, 32, generator=gen) * 2 - 1
+    target = torch.rand(B, 1, 32, 32, generator=gen) * 2 - 1
+    expected = losses.pyramid_l1(composite, target.repeat_interleave(K, 0), 3, per_frame=True)
+    assert torch.equal(_composite_loss(composite, target), expected.reshape(B, K))
+    with torch.no_grad():  # pyramid_l1 pools with pool2x2 without gradients: the same loss
+        assert torch.equal(losses.pyramid_l1(composite, target.repeat_interleave(K, 0), 3,
+                                             per_frame=True), expected)
+
+
 def test_floor_contact_lifts_a_sunken_rod_onto_the_floor():
     """With floor_contact a rod posed below the floor renders as the same rod lying on it (its
     lowest point at height 0); without it, it sinks out of sight."""
