@@ -139,6 +139,7 @@ LM_EPS = 0.01
 LM_IRLS_FLOOR = 0.02
 LM_DAMPING, LM_DOWN, LM_DAMPING_MIN = 1e-2, 0.3, 1e-4
 LM_CHUNK = 32  # scenes (frames x hypotheses) per batch of perturbed renders: bounds memory
+SWAP_CHUNK = 1 << 22  # pixels of trial composites per batch of `_swap_in` (16 MB in float32)
 
 
 def _pyramid_features(img: torch.Tensor, levels: int = 3) -> torch.Tensor:
@@ -272,6 +273,19 @@ def _fit_loss(G, pose: torch.Tensor, target: torch.Tensor, template) -> torch.Te
     return _composite_loss(G.zbuffer(renders), target)
 
 
+def _swap_in_chunked(G, pose: torch.Tensor, target: torch.Tensor, template,
+                     rounds: int) -> torch.Tensor:
+    """`_swap_in` on as many frames at a time as keep its trial composites (B, n, H n, s, s)
+    within SWAP_CHUNK pixels: each frame is swapped on its own, so the result is the same as
+    in one batch, and the memory no longer grows with the batch (the model export's 50 frames,
+    `refine_hypotheses` up to 32)."""
+    B, H, n, _ = pose.shape
+    per_frame = n * H * n * target.shape[-1] ** 2
+    step = max(1, SWAP_CHUNK // per_frame)
+    return torch.cat([_swap_in(G, pose[i:i + step], target[i:i + step], template, rounds)
+                      for i in range(0, B, step)])
+
+
 def _swap_in(G, pose: torch.Tensor, target: torch.Tensor, template, rounds: int) -> torch.Tensor:
     """(B, H, n, 6) starting points, (B, 1, s, s) inputs -> (B, n, 6): the best-fitting start,
     into which, `rounds` times, the single instance of any start that lowers the fit loss most
@@ -336,7 +350,7 @@ def refine_poses(G, pose: torch.Tensor, x: torch.Tensor, steps: int, reseeds: in
     if swaps < 0:
         raise ValueError(f"swaps must be >= 0 (0 = off), got {swaps}")
     if swaps and keep == 1 and H > 1:
-        pose, H = _swap_in(G, pose, target, template, swaps)[:, None], 1
+        pose, H = _swap_in_chunked(G, pose, target, template, swaps)[:, None], 1
     elif 0 < keep < H:
         best = _fit_loss(G, pose, target, template).argsort(1)[:, :keep]
         pose, H = pose[torch.arange(B)[:, None], best], keep
@@ -355,5 +369,5 @@ def refine_poses(G, pose: torch.Tensor, x: torch.Tensor, steps: int, reseeds: in
     if H == 1:
         return pose[:, 0]
     if swaps:
-        return _swap_in(G, pose, target, template, swaps)
+        return _swap_in_chunked(G, pose, target, template, swaps)
     return pose[torch.arange(B), _fit_loss(G, pose, target, template).argmin(1)]

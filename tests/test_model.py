@@ -381,11 +381,13 @@ def _rod(length: float, radius: float):
     return G
 
 
-def test_instances_swapped_in_from_other_starts():
+def test_instances_swapped_in_from_other_starts(monkeypatch):
     """Three starts that each read a different one of three rods right: the best of them alone
     explains one rod, two swaps bring the other two in from the other starts. The fit loss
     never rises with more swaps, and 0 swaps is the plain choice. With keep 1 the swaps come
-    before the fit; with every start fitted (keep 0), after it, from the fitted starts."""
+    before the fit; with every start fitted (keep 0), after it, from the fitted starts. Frames
+    swapped a few at a time (SWAP_CHUNK) give what one batch gives."""
+    from inseggan_ros import refine
     from inseggan_ros.refine import _fit_loss, refine_poses
 
     torch.manual_seed(2)
@@ -422,6 +424,13 @@ def test_instances_swapped_in_from_other_starts():
                                    refine_poses(G, starts, x, 0, keep=1, swaps=2))
         fitted = fit(refine_poses(G, starts, x, 4, keep=0))
         assert (fit(refine_poses(G, starts, x, 4, keep=0, swaps=2)) <= fitted + 1e-6).all()
+        # chunks of one frame: the same poses, bit for bit (the second frame's starts differ)
+        starts[1] += 0.05 * torch.randn(starts[1].shape)
+        whole = [refine_poses(G, starts, x, 0, keep=k, swaps=2) for k in (1, 0)]
+        monkeypatch.setattr(refine, "SWAP_CHUNK", 1)
+        assert all(torch.equal(refine_poses(G, starts, x, 0, keep=k, swaps=2), w)
+                   for k, w in zip((1, 0), whole))
+        assert not torch.equal(whole[0][0], whole[0][1])  # two different frames were chunked
     from inseggan_ros.settings import InferenceConfig
 
     InferenceConfig(refine_hypotheses=8, refine_keep=0, refine_swaps=4)
