@@ -98,9 +98,10 @@ def r1_penalty(real_logits: torch.Tensor, real: torch.Tensor) -> torch.Tensor:
 
 def pool2x2(x: torch.Tensor) -> torch.Tensor:
     """2 x 2 average pooling of (..., H, W) images with even sides: the same numbers as
-    `F.avg_pool2d(x, 2)`, bit for bit (its sum in its order, then the exact division by 4), and
-    about three times faster on a CPU for the test-time fit's batches of hundreds of
-    single-channel 32 x 32 renders (docs/benchmarks.md, 2026-11-27, evening). With gradients,
+    `F.avg_pool2d(x, 2)` (its CPU kernel's sum in its order, then the exact division by 4: bit
+    for bit with the PyTorch of requirements.txt, natively and in AVX2 mode), without
+    `F.avg_pool2d`'s per-channel cost, which dominates on a CPU for the test-time fit's batches
+    of hundreds of single-channel 32 x 32 renders (docs/benchmarks.md). With gradients,
     `F.avg_pool2d`'s own backward is the faster, so `pyramid_l1` keeps it there. Odd sides go
     to `F.avg_pool2d`, which drops the last row or column."""
     if x.shape[-1] % 2 or x.shape[-2] % 2:

@@ -262,23 +262,24 @@ def test_pyramid_l1_per_frame_averages_to_the_batch_loss():
 
 
 def test_fast_pooling_gives_the_same_numbers_as_avg_pool2d():
-    """`pool2x2` (the test-time fit's pooling) is `F.avg_pool2d(x, 2)` bit for bit, odd sides
-    included; `refine._composite_loss`, which pools each input once for all its composites, is
-    `pyramid_l1` per frame against the input repeated, bit for bit."""
+    """`pool2x2` (the test-time fit's pooling) is `F.avg_pool2d(x, 2)`, odd sides included;
+    `refine._composite_loss`, which pools each input once for all its composites, is
+    `pyramid_l1` per frame against the input repeated. (Bit for bit on the machines measured;
+    compared here to float32 rounding, which is what another CPU's kernels may change.)"""
     from inseggan_ros.refine import _composite_loss
 
     gen = torch.Generator().manual_seed(0)
     for shape in [(200, 1, 32, 32), (3, 5, 16, 16), (2, 1, 7, 9), (1, 1, 64, 64)]:
         x = torch.randn(shape, generator=gen) * 100
-        assert torch.equal(losses.pool2x2(x), F.avg_pool2d(x, 2))
+        torch.testing.assert_close(losses.pool2x2(x), F.avg_pool2d(x, 2))
     B, K = 3, 40
     composite = torch.rand(B * K, 1, 32, 32, generator=gen) * 2 - 1
     target = torch.rand(B, 1, 32, 32, generator=gen) * 2 - 1
     expected = losses.pyramid_l1(composite, target.repeat_interleave(K, 0), 3, per_frame=True)
-    assert torch.equal(_composite_loss(composite, target), expected.reshape(B, K))
+    torch.testing.assert_close(_composite_loss(composite, target), expected.reshape(B, K))
     with torch.no_grad():  # pyramid_l1 pools with pool2x2 without gradients: the same loss
-        assert torch.equal(losses.pyramid_l1(composite, target.repeat_interleave(K, 0), 3,
-                                             per_frame=True), expected)
+        torch.testing.assert_close(losses.pyramid_l1(composite, target.repeat_interleave(K, 0),
+                                                     3, per_frame=True), expected)
 
 
 def test_floor_contact_lifts_a_sunken_rod_onto_the_floor():
@@ -424,12 +425,12 @@ def test_instances_swapped_in_from_other_starts(monkeypatch):
                                    refine_poses(G, starts, x, 0, keep=1, swaps=2))
         fitted = fit(refine_poses(G, starts, x, 4, keep=0))
         assert (fit(refine_poses(G, starts, x, 4, keep=0, swaps=2)) <= fitted + 1e-6).all()
-        # chunks of one frame: the same poses, bit for bit (the second frame's starts differ)
+        # chunks of one frame: the same poses (the second frame's starts differ)
         starts[1] += 0.05 * torch.randn(starts[1].shape)
         whole = [refine_poses(G, starts, x, 0, keep=k, swaps=2) for k in (1, 0)]
         monkeypatch.setattr(refine, "SWAP_CHUNK", 1)
-        assert all(torch.equal(refine_poses(G, starts, x, 0, keep=k, swaps=2), w)
-                   for k, w in zip((1, 0), whole))
+        for k, w in zip((1, 0), whole):
+            torch.testing.assert_close(refine_poses(G, starts, x, 0, keep=k, swaps=2), w)
         assert not torch.equal(whole[0][0], whole[0][1])  # two different frames were chunked
     from inseggan_ros.settings import InferenceConfig
 
