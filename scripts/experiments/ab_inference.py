@@ -41,6 +41,24 @@ def extract(commit: str, into: Path) -> str:
     return "inseggan_ab_old"
 
 
+def interleave(segs: dict, preps: dict, frames: list, rounds: int) -> tuple[dict, dict]:
+    """Each of the two segmenters `segs` (key -> Segmenter, with its `preps[key]`) on every
+    frame in turn, their order alternating from round to round; round 0 warms up and keeps the
+    labels. -> ({key: [ms per frame of rounds 1..]}, {key: [labels of round 0]})."""
+    keys = list(segs)
+    ms, labels = {k: [] for k in keys}, {k: [] for k in keys}
+    for r in range(rounds + 1):
+        for f in frames:
+            for key in (keys if r % 2 else keys[::-1]):
+                t0 = time.perf_counter()
+                out = segs[key](f, preps[key], reconstruction=False)
+                if r == 0:
+                    labels[key].append(out.labels)
+                else:
+                    ms[key].append((time.perf_counter() - t0) * 1e3)
+    return ms, labels
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("commit")
@@ -73,17 +91,7 @@ def main(argv=None) -> int:
                 extra = {"superpixel_thread": True} if threaded else {}
                 segs[key] = cls.from_checkpoint(path, device="cpu", **extra)
                 preps[key] = pre.node_defaults(segs[key].prep_cfg, frames[:pre.BIN_FRAMES])
-            ms = {"old": [], "new": []}
-            labels = {"old": [], "new": []}
-            for r in range(args.rounds + 1):  # round 0 warms up and keeps the labels
-                for f in frames:
-                    for key in (("old", "new") if r % 2 else ("new", "old")):
-                        t0 = time.perf_counter()
-                        out = segs[key](f, preps[key], reconstruction=False)
-                        if r == 0:
-                            labels[key].append(out.labels)
-                        else:
-                            ms[key].append((time.perf_counter() - t0) * 1e3)
+            ms, labels = interleave(segs, preps, frames, args.rounds)
             o, n = np.array(ms["old"]), np.array(ms["new"])
             same = all(np.array_equal(a, b) for a, b in zip(labels["old"], labels["new"]))
             print(f"{name}: {args.commit} p50 {np.median(o):.2f} ms, this checkout p50 "

@@ -6,18 +6,18 @@ process, so that a shared, noisy machine slows both alike.
 Each model segments the bench's simulated 1280 x 720 frames (`bench_node`'s) on one torch
 thread with the superpixel thread, as the node does, with its shipped settings and SETTING
 (an `InferenceConfig` field, an integer) set to A and to B. Prints both medians and the median
-of the per-frame ratios B / A.
+of the per-frame ratios B / A (`ab_inference.interleave`: the same timing loop).
 """
 from __future__ import annotations
 
 import argparse
 import dataclasses
 import sys
-import time
 
 import cv2
 import numpy as np
 import torch
+from ab_inference import interleave  # this script's folder is on sys.path
 
 
 def main(argv=None) -> int:
@@ -29,6 +29,8 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=12)
     ap.add_argument("--rounds", type=int, default=8)
     args = ap.parse_args(argv)
+    if args.a == args.b:
+        ap.error(f"A and B are both {args.a}; give two different values")
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     from inseggan_ros import preprocess, segment
@@ -45,14 +47,7 @@ def main(argv=None) -> int:
             seg.inference = dataclasses.replace(seg.inference, **{args.setting: value})
             segs[value] = seg
         prep = preprocess.node_defaults(segs[args.a].prep_cfg, frames[:preprocess.BIN_FRAMES])
-        ms = {args.a: [], args.b: []}
-        for r in range(args.rounds + 1):  # round 0 warms up
-            for f in frames:
-                for value in ((args.a, args.b) if r % 2 else (args.b, args.a)):
-                    t0 = time.perf_counter()
-                    segs[value](f, prep, reconstruction=False)
-                    if r:
-                        ms[value].append((time.perf_counter() - t0) * 1e3)
+        ms, _ = interleave(segs, {args.a: prep, args.b: prep}, frames, args.rounds)
         a, b = np.array(ms[args.a]), np.array(ms[args.b])
         print(f"{name}: {args.setting} {args.a} p50 {np.median(a):.2f} ms, {args.b} p50 "
               f"{np.median(b):.2f} ms, per-frame ratio median {np.median(b / a):.3f}",
