@@ -500,11 +500,12 @@ def cmd_card_run(args) -> int:
     return 0
 
 
-def _also_profiles(args) -> dict:
-    """{file stem: InferenceConfig} of each --also-profile FILE."""
-    from .segment import InferenceConfig
-
-    return {Path(f).stem: settings.apply(InferenceConfig(), settings.read_params_file(f))
+def _also_profiles(args, base) -> dict:
+    """{file stem: InferenceConfig} of each --also-profile FILE, applied to `base` (the settings
+    the model ships with) as the segmenter node applies a parameters file to the model's own:
+    what the file leaves out stays the model's (a part's own superpixel scale, say), so that
+    each row of the card is what the node does with that file."""
+    return {Path(f).stem: settings.apply(base, settings.read_params_file(f))
             for f in args.also_profile or []}
 
 
@@ -515,7 +516,7 @@ def cmd_card_settings(args) -> int:
     t0 = time.perf_counter()
     seg = Segmenter.from_checkpoint(Path(args.model) / "model.pt", device="cpu")
     inference = settings.resolve(seg.inference, args)
-    also = _also_profiles(args)
+    also = _also_profiles(args, inference)
     card = apply_settings(args.model, args.data, inference, also=also)
     t = card["test"]
     print(f"{args.model}: now ships {card['inference']}; test mIoU "
@@ -546,7 +547,7 @@ def cmd_export(args) -> int:
         if getattr(args, flag):
             raise ValueError(f"--{flag.replace('_', '-')} goes with --bag, not --data")
     inference = settings.resolve(InferenceConfig(), args)
-    also = _also_profiles(args)
+    also = _also_profiles(args, inference)
     card = export_model(args.checkpoint, args.data, args.name,
                         args.out or Path("models") / args.name,
                         inference=inference, half=not args.no_half, frames=args.frames,
@@ -729,7 +730,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", type=Path, required=True,
                    help="the card's data set (its val and test splits are read)")
     p.add_argument("--also-profile", action="append", type=Path, metavar="FILE",
-                   help="other settings measured on the test split too (repeatable)")
+                   help="other settings measured on the test split too, each file applied "
+                        "to the settings shipped, as the node applies it (repeatable)")
     settings.add_flags(p, "(default: the model's own)")
     p.set_defaults(func=cmd_card_settings)
 
@@ -763,8 +765,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, help="default: models/<name>")
     settings.add_flags(p, "(default: none)")
     p.add_argument("--also-profile", type=Path, action="append",
-                   help="parameters file of other settings to measure on the test split too "
-                        "(a row inseggan_<file stem>; repeatable)")
+                   help="parameters file of other settings to measure on the test split too, "
+                        "applied to the settings exported, as the node applies it (a row "
+                        "inseggan_<file stem>; repeatable)")
     p.add_argument("--no-half", action="store_true", help="keep float32 weights")
     p.add_argument("--frames", type=int, default=200,
                    help="frames per split at most (with --bag: calibration and held-out)")

@@ -2,6 +2,7 @@
 from dataclasses import replace
 import itertools
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -493,10 +494,35 @@ def test_settings_have_one_name_as_field_parameter_and_flag():
         settings.apply(cfg, {"refine_keep": -1})
 
 
+def test_a_cards_profile_row_is_what_the_node_runs_with_that_file(tmp_path):
+    """`--also-profile FILE` (the cards' other rows) applies the file to the settings the model
+    ships, as the segmenter node applies a --params-file to the model's own: what the file
+    leaves out stays the model's, what it names wins. fastest.yaml turns the vote and the split
+    off by name, so its row and the node agree for every model."""
+    import argparse
+
+    from inseggan_ros import settings
+    from inseggan_ros.cli import _also_profiles
+
+    config = Path(__file__).resolve().parents[1] / "config"
+    partial = tmp_path / "partial.yaml"
+    partial.write_text("/**/segmenter:\n  ros__parameters:\n    refine_steps: 4\n")
+    base = settings.InferenceConfig(refine_hypotheses=8, refine_keep=1, superpixel_scale=160,
+                                    split_scale=800)
+    files = [config / "fastest.yaml", config / "quality.yaml", partial]
+    rows = _also_profiles(argparse.Namespace(also_profile=files), base)
+    assert (rows["partial"].refine_steps, rows["partial"].superpixel_scale,
+            rows["partial"].refine_hypotheses) == (4, 160, 8)
+    assert (rows["fastest"].superpixel_scale, rows["fastest"].split_scale) == (0, 0)
+    quality = settings.read_params_file(config / "quality.yaml")
+    assert rows["quality"].superpixel_scale == quality["superpixel_scale"]
+    assert rows["quality"].refine_steps == quality["refine_steps"] > 0
+    assert _also_profiles(argparse.Namespace(also_profile=None), base) == {}
+
+
 def test_a_bfloat16_encoder_gives_the_float32_labels():
     """The shipped cylinder model on bins it draws itself: the encoder in bfloat16 (native or
     not) segments as in float32, up to a few pixels."""
-    from pathlib import Path
 
     from inseggan_ros.precision import native_bfloat16
     from inseggan_ros.segment import InferenceConfig, Segmenter
