@@ -57,7 +57,8 @@ class DistillConfig:
     eval_every: int = 500
     eval_frames: int = 100
     seed: int = 0
-    encoder_nf: int = 0  # 0: fine-tune the source's encoder; else one this wide, pruned from it
+    encoder_nf: int = 0  # 0: fine-tune the source's encoder; else one this wide, pruned
+    # from it (narrower) or widened from it (`widened`)
     lambda_pose: float = 1.0  # weight of the pseudo-label pose loss (0: no pseudo-labels made)
     lambda_label: float = 0.0  # weight of the ground-truth label loss (`losses.label_loss`):
     # simulated scenes of the part, whose labels are known
@@ -171,6 +172,42 @@ def narrowed(E: Encoder, nf: int) -> Encoder:
     return new
 
 
+def widened(E: Encoder, nf: int, noise: float = 1e-2, seed: int = 0) -> Encoder:
+    """A copy of encoder E with the larger width `nf` that computes what E computes (Net2Net's
+    widening, Chen et al. 2016): each convolution's new output channels copy old ones (with
+    their instance-norm scale and shift, so a copy is normalised exactly as its original), and
+    the next convolution's weights on a channel and its copies are the original's divided among
+    them. `noise` (relative to each weight tensor's std) on those divided weights breaks the
+    copies' symmetry, which gradients alone would never break."""
+    cfg = E.cfg
+    old_nf = cfg.encoder_nf or cfg.nf
+    if nf < old_nf:
+        raise ValueError(f"encoder_nf {nf} is narrower than the encoder's {old_nf}: `narrowed`")
+    new = Encoder(ModelConfig(**{**asdict(cfg), "encoder_nf": nf}))
+    layers = list(E.derender) + list(E.head)
+    new_layers = list(new.derender) + list(new.head)
+    convs = [i for i, m in enumerate(layers) if isinstance(m, torch.nn.Conv2d)]
+    gen = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        src_in = torch.arange(layers[convs[0]].in_channels)  # the image (and coordinates)
+        for k, i in enumerate(convs):
+            conv, out = layers[i], new_layers[i]
+            # each new output channel's original: the old ones, then copies of them in turn
+            src = torch.arange(out.out_channels) % conv.out_channels
+            copies = torch.bincount(src_in, minlength=conv.in_channels)[src_in].float()
+            w = conv.weight[src][:, src_in] / copies[None, :, None, None]
+            if len(src_in) > conv.in_channels:  # inputs that were copied: break their tie
+                w = w + torch.randn(w.shape, generator=gen) * noise * conv.weight.std()
+            out.weight.copy_(w)
+            out.bias.copy_(conv.bias[src])
+            after = layers[i + 1] if i + 1 < len(layers) else None
+            if isinstance(after, torch.nn.InstanceNorm2d):
+                new_layers[i + 1].weight.copy_(after.weight[src])
+                new_layers[i + 1].bias.copy_(after.bias[src])
+            src_in = src
+    return new
+
+
 # Heights outside [SUNK, RAISED] (image half-widths) all render the same: below, the rod is out
 # of sight; above, its whole footprint saturates at max_height. The fit drifts there without
 # bound (cylinder pseudo-labels reached +164, 224 of 20,000 instances above 2), which gave the
@@ -261,9 +298,10 @@ def distill(source, train_x: np.ndarray, val: dict | None, out,
               if cfg.lambda_pose > 0 else None)
     lab = (torch.from_numpy(np.asarray(train_labels[:cfg.frames]).astype(np.int64))
            if cfg.lambda_label > 0 else None)
-    if cfg.encoder_nf:  # an encoder of another width, pruned from this one, on the same labels
+    if cfg.encoder_nf:  # an encoder of another width, pruned from or widened from this one
+        width = E.cfg.encoder_nf or E.cfg.nf
         state = {**state, "model_config": {**state["model_config"], "encoder_nf": cfg.encoder_nf}}
-        E = narrowed(E, cfg.encoder_nf)
+        E = (narrowed if cfg.encoder_nf <= width else widened)(E, cfg.encoder_nf)
     device = checkpoint.pick_device(device)
     G, E = G.to(device), E.to(device)
     xt = torch.from_numpy(x)

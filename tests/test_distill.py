@@ -9,7 +9,7 @@ from conftest import run_cli
 
 from inseggan_ros import checkpoint, losses
 from inseggan_ros.data import load_sim_split
-from inseggan_ros.distill import _features, narrowed
+from inseggan_ros.distill import _features, narrowed, widened
 from inseggan_ros.segment import Segmenter
 
 MODEL = Path(__file__).resolve().parents[1] / "models" / "cylinder" / "model.pt"
@@ -112,6 +112,43 @@ def test_narrowing_keeps_the_widest_channels_and_the_same_width_changes_nothing(
         rows = [int((E.derender[0].weight == w).all((1, 2, 3)).nonzero())
                 for w in small.derender[0].weight]
         assert len(set(rows)) == width // 2
+
+
+@pytest.mark.parametrize("factor", [2, 1.5])
+def test_widening_computes_what_the_source_encoder_computes(factor):
+    """`widened` (Net2Net): without noise the wider encoder's codes are the source's, up to
+    float32 rounding, whether every channel is copied (twice the width) or some are (1.5
+    times); the noise makes the copies' weights differ, and narrower is refused."""
+    _, _, E = checkpoint.build_models(checkpoint.load(MODEL))
+    width = E.cfg.encoder_nf or E.cfg.nf
+    nf = int(width * factor)
+    x = torch.rand(3, 1, 64, 64) * 2 - 1
+    with torch.no_grad():
+        exact, noisy = widened(E, nf, noise=0.0), widened(E, nf)
+        assert exact.cfg.encoder_nf == nf and exact.derender[0].weight.shape == (nf, 1, 4, 4)
+        assert exact.head[6].weight.shape == (80, 8 * nf, 4, 4)
+        torch.testing.assert_close(exact(x), E(x), rtol=1e-4, atol=1e-4)
+        # channel k + width copies channel k: the next layer's weights on the two now differ
+        w = noisy.derender[2].weight
+        assert not torch.equal(w[:, 0], w[:, width])
+        assert (noisy(x) - E(x)).abs().max() < 0.1 * E(x).abs().max()
+    with pytest.raises(ValueError, match="narrower"):
+        widened(E, width // 2)
+
+
+def test_a_wider_encoder_widened_from_the_source_trains_and_segments(tmp, cyl_data):
+    """`--encoder-nf` wider than the source's: the run widens it (`widened`), records the width
+    with the weights, and the result loads and segments."""
+    out = tmp / "w"
+    run_cli("distill", "--checkpoint", MODEL, "--data", cyl_data, "--out", out, "--frames", "16",
+            "--refine-steps", "2", "--hypotheses", "1", "--iterations", "20", "--eval-every",
+            "20", "--encoder-nf", "24", "--quiet", check=True, timeout=600)
+    state = checkpoint.load(out / "last.pt")
+    assert state["model_config"]["encoder_nf"] == 24
+    assert state["encoder"]["derender.0.weight"].shape[0] == 24
+    seg = Segmenter.from_checkpoint(out / "last.pt", device="cpu")
+    x = torch.from_numpy(load_sim_split(cyl_data, "val", limit=2)["x"])
+    assert seg.E.cfg.encoder_nf == 24 and seg.segment_batch(x)["labels"].shape == (2, 64, 64)
 
 
 def test_distill_config_is_validated():
