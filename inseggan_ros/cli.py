@@ -863,7 +863,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="constant (default) or cosine: down to 0 at the last iteration")
     p.add_argument("--encoder-nf", type=int, default=0,
                    help="0: fine-tune the checkpoint's encoder (default); N: an encoder of width "
-                        "N (a multiple of 8; narrower is faster), pruned from the checkpoint's")
+                        "N (a multiple of 8; narrower is faster), pruned from the checkpoint's "
+                        "or, wider, widened from it")
     p.add_argument("--pose-weight", type=float, default=1.0,
                    help="weight of the loss on the refined poses (1; 0: no pseudo-labels)")
     p.add_argument("--label-weight", type=float, default=0.0,
