@@ -190,14 +190,14 @@ def widened(E: Encoder, nf: int, noise: float = 1e-2, seed: int = 0) -> Encoder:
     gen = torch.Generator().manual_seed(seed)
     with torch.no_grad():
         src_in = torch.arange(layers[convs[0]].in_channels)  # the image (and coordinates)
-        for k, i in enumerate(convs):
+        for i in convs:
             conv, out = layers[i], new_layers[i]
             # each new output channel's original: the old ones, then copies of them in turn
             src = torch.arange(out.out_channels) % conv.out_channels
             copies = torch.bincount(src_in, minlength=conv.in_channels)[src_in].float()
             w = conv.weight[src][:, src_in] / copies[None, :, None, None]
-            if len(src_in) > conv.in_channels:  # inputs that were copied: break their tie
-                w = w + torch.randn(w.shape, generator=gen) * noise * conv.weight.std()
+            shared = (copies > 1)[None, :, None, None]  # weights on an input that was copied
+            w = w + shared * torch.randn(w.shape, generator=gen) * noise * conv.weight.std()
             out.weight.copy_(w)
             out.bias.copy_(conv.bias[src])
             after = layers[i + 1] if i + 1 < len(layers) else None
