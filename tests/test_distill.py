@@ -73,16 +73,26 @@ def test_distill_refuses_a_learned_renderer_and_a_missing_checkpoint(tmp, cyl_da
     assert not (tmp / "d2" / "pseudo.pt").exists()
 
 
+def _distilled_at_width(out, data, nf: int, frames: int, refine_steps: int, hypotheses: int,
+                        iterations: int) -> dict:
+    """`inseggan distill --encoder-nf nf` from the shipped cylinder model -> its last.pt, which
+    records the width with weights of that width."""
+    run_cli("distill", "--checkpoint", MODEL, "--data", data, "--out", out, "--frames", frames,
+            "--refine-steps", refine_steps, "--hypotheses", hypotheses, "--iterations",
+            iterations, "--eval-every", iterations, "--encoder-nf", nf, "--quiet", check=True,
+            timeout=600)
+    state = checkpoint.load(out / "last.pt")
+    assert state["model_config"]["encoder_nf"] == nf
+    assert state["encoder"]["derender.0.weight"].shape[0] == nf
+    return state
+
+
 def test_a_narrower_encoder_pruned_from_the_source_learns_the_refined_poses(tmp, cyl_data):
     """`--encoder-nf`: an encoder of another width (faster at test time), pruned from the
     source's (`narrowed`), then distilled."""
     out = tmp / "s"
-    run_cli("distill", "--checkpoint", MODEL, "--data", cyl_data, "--out", out, "--frames", "32",
-            "--refine-steps", "4", "--hypotheses", "2", "--iterations", "150", "--eval-every",
-            "150", "--encoder-nf", "8", "--quiet", check=True, timeout=600)
-    state = checkpoint.load(out / "last.pt")
-    assert state["model_config"]["encoder_nf"] == 8
-    assert state["encoder"]["derender.0.weight"].shape[0] == 8
+    state = _distilled_at_width(out, cyl_data, 8, frames=32, refine_steps=4, hypotheses=2,
+                                iterations=150)
     pseudo = torch.load(out / "pseudo.pt", weights_only=False)["poses"]
     x = torch.from_numpy(load_sim_split(cyl_data, "train", limit=32)["x"])
     pruned = tmp / "pruned.pt"  # the starting point: pruned, not yet trained
@@ -140,12 +150,8 @@ def test_a_wider_encoder_widened_from_the_source_trains_and_segments(tmp, cyl_da
     """`--encoder-nf` wider than the source's: the run widens it (`widened`), records the width
     with the weights, and the result loads and segments."""
     out = tmp / "w"
-    run_cli("distill", "--checkpoint", MODEL, "--data", cyl_data, "--out", out, "--frames", "16",
-            "--refine-steps", "2", "--hypotheses", "1", "--iterations", "20", "--eval-every",
-            "20", "--encoder-nf", "24", "--quiet", check=True, timeout=600)
-    state = checkpoint.load(out / "last.pt")
-    assert state["model_config"]["encoder_nf"] == 24
-    assert state["encoder"]["derender.0.weight"].shape[0] == 24
+    _distilled_at_width(out, cyl_data, 24, frames=16, refine_steps=2, hypotheses=1,
+                        iterations=20)
     seg = Segmenter.from_checkpoint(out / "last.pt", device="cpu")
     x = torch.from_numpy(load_sim_split(cyl_data, "val", limit=2)["x"])
     assert seg.E.cfg.encoder_nf == 24 and seg.segment_batch(x)["labels"].shape == (2, 64, 64)

@@ -523,7 +523,6 @@ def test_a_cards_profile_row_is_what_the_node_runs_with_that_file(tmp_path):
 def test_a_bfloat16_encoder_gives_the_float32_labels():
     """The shipped cylinder model on bins it draws itself: the encoder in bfloat16 (native or
     not) segments as in float32, up to a few pixels."""
-
     from inseggan_ros.precision import native_bfloat16
     from inseggan_ros.segment import InferenceConfig, Segmenter
 
