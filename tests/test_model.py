@@ -1,5 +1,6 @@
 """Model modules: shapes, gradients, pose spread; losses against brute force."""
 from dataclasses import replace
+import copy
 import itertools
 import math
 from pathlib import Path
@@ -539,6 +540,12 @@ def test_a_bfloat16_encoder_gives_the_float32_labels():
     assert seg.resolve_precision("auto") == ("bfloat16" if native_bfloat16("cpu") else "float32")
     assert seg.encoder("bfloat16") is seg.encoder("bfloat16")  # one copy of the weights
     assert seg.encoder("float32") is seg.E
+    # its copy's channels-last layout (faster with native bfloat16) gives a plain bfloat16
+    # copy's codes, up to bfloat16 rounding
+    plain = copy.deepcopy(seg.E).to(torch.bfloat16)
+    with torch.no_grad():
+        codes, want = seg.encoder("bfloat16")(x), plain(x.to(torch.bfloat16)).float()
+    torch.testing.assert_close(codes, want, rtol=0.02, atol=0.02 * float(want.abs().max()))
 
 
 def test_levenberg_marquardt_refinement_recovers_known_poses():
