@@ -179,11 +179,9 @@ def widened(E: Encoder, nf: int, noise: float = 1e-2, seed: int = 0) -> Encoder:
     the next convolution's weights on a channel and its copies are the original's divided among
     them. `noise` (relative to each weight tensor's std) on those divided weights breaks the
     copies' symmetry, which gradients alone would never break."""
-    cfg = E.cfg
-    old_nf = cfg.encoder_nf or cfg.nf
-    if nf < old_nf:
-        raise ValueError(f"encoder_nf {nf} is narrower than the encoder's {old_nf}: `narrowed`")
-    new = Encoder(ModelConfig(**{**asdict(cfg), "encoder_nf": nf}))
+    if nf < E.width:
+        raise ValueError(f"encoder_nf {nf} is narrower than the encoder's {E.width}: `narrowed`")
+    new = Encoder(ModelConfig(**{**asdict(E.cfg), "encoder_nf": nf}))
     layers = list(E.derender) + list(E.head)
     new_layers = list(new.derender) + list(new.head)
     convs = [i for i, m in enumerate(layers) if isinstance(m, torch.nn.Conv2d)]
@@ -299,9 +297,8 @@ def distill(source, train_x: np.ndarray, val: dict | None, out,
     lab = (torch.from_numpy(np.asarray(train_labels[:cfg.frames]).astype(np.int64))
            if cfg.lambda_label > 0 else None)
     if cfg.encoder_nf:  # an encoder of another width, pruned from or widened from this one
-        width = E.cfg.encoder_nf or E.cfg.nf
         state = {**state, "model_config": {**state["model_config"], "encoder_nf": cfg.encoder_nf}}
-        E = (narrowed if cfg.encoder_nf <= width else widened)(E, cfg.encoder_nf)
+        E = (narrowed if cfg.encoder_nf <= E.width else widened)(E, cfg.encoder_nf)
     device = checkpoint.pick_device(device)
     G, E = G.to(device), E.to(device)
     xt = torch.from_numpy(x)

@@ -638,7 +638,7 @@ class Encoder(nn.Module):
     def __init__(self, cfg: ModelConfig):
         super().__init__()
         self.cfg = cfg
-        nf = cfg.encoder_nf or cfg.nf
+        nf = self.width
         layers = _trunk(nf)
         if cfg.coord_conv:  # the image plus its x and y coordinates (CoordConv)
             layers[0] = nn.Conv2d(3, nf, 4, 2, 1)
@@ -649,6 +649,11 @@ class Encoder(nn.Module):
         self.head = nn.Sequential(*layers[5:],
                                   nn.Conv2d(8 * nf, cfg.n_instances * cfg.latent_dim, 4, 1, 0))
         init_weights(self)
+
+    @property
+    def width(self) -> int:
+        """The trunk's base width (`ModelConfig.encoder_nf`, or nf where that is 0)."""
+        return self.cfg.encoder_nf or self.cfg.nf
 
     def forward(self, x: torch.Tensor, return_features: bool = False):
         if self.cfg.coord_conv:

@@ -110,7 +110,7 @@ def test_a_narrower_encoder_pruned_from_the_source_learns_the_refined_poses(tmp,
 
 def test_narrowing_keeps_the_widest_channels_and_the_same_width_changes_nothing():
     _, _, E = checkpoint.build_models(checkpoint.load(MODEL))
-    width = E.cfg.encoder_nf or E.cfg.nf
+    width = E.width
     x = torch.randn(3, 1, 64, 64)
     with torch.no_grad():
         assert torch.equal(narrowed(E, width)(x), E(x))
@@ -130,7 +130,7 @@ def test_widening_computes_what_the_source_encoder_computes(factor):
     float32 rounding, whether every channel is copied (twice the width) or some are (1.5
     times); the noise makes the copies' weights differ, and narrower is refused."""
     _, _, E = checkpoint.build_models(checkpoint.load(MODEL))
-    width = E.cfg.encoder_nf or E.cfg.nf
+    width = E.width
     nf = int(width * factor)
     x = torch.rand(3, 1, 64, 64) * 2 - 1
     with torch.no_grad():
