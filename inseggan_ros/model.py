@@ -652,7 +652,7 @@ class Encoder(nn.Module):
 
     @property
     def width(self) -> int:
-        """The trunk's base width (`ModelConfig.encoder_nf`, or nf where that is 0)."""
+        """The trunk's base number of channels: `ModelConfig.encoder_nf`, or nf where that is 0."""
         return self.cfg.encoder_nf or self.cfg.nf
 
     def forward(self, x: torch.Tensor, return_features: bool = False):
