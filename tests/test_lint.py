@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PATHS = [str(ROOT / p) for p in ("inseggan_ros", "tests", "launch", "setup.py")
+PATHS = [str(ROOT / p) for p in ("inseggan_ros", "tests", "launch", "scripts", "setup.py")
          if (ROOT / p).exists()]
 
 
@@ -26,6 +26,8 @@ def test_flake8():
 @pytest.mark.linter
 def test_pep257():
     ament_pep257 = pytest.importorskip("ament_pep257.main")
-    rc = ament_pep257.main(argv=["--add-ignore", "D205", "D209", "D213", "D400", "D401", "D415",
-                                 *PATHS])
+    # the paths first: `--add-ignore` takes every argument after it, and paths given there
+    # would be read as codes to ignore, leaving pep257 to check the working directory instead
+    rc = ament_pep257.main(argv=[*PATHS, "--add-ignore", "D205", "D209", "D213", "D400", "D401",
+                                 "D415"])
     assert rc == 0, "docstring style errors (printed above)"
