@@ -198,11 +198,22 @@ def _load_training_data(args):
     return train, val, prep, info
 
 
+def _instances(args) -> int | None:
+    """The n of `inseggan train`: --instances, else a simulated data set's parts per bin (a
+    model of 5 instances fitted to bins of 4 renders a part too many in every frame), else the
+    config's own (a bag does not say how many parts its bin holds)."""
+    if args.instances is not None or not args.data:
+        return args.instances
+    from .data import load_meta
+
+    return int(load_meta(args.data)["scene"]["instances"])
+
+
 def cmd_train(args) -> int:
     from .train import get_config, torchrun_env, train
 
     cfg = get_config(args.config, nf=args.nf, composite=args.composite,
-                     n_instances=args.instances, batch_size=args.batch_size,
+                     n_instances=_instances(args), batch_size=args.batch_size,
                      lambda_real=args.lambda_real, matching=args.matching, seed=args.seed,
                      max_iterations=args.iterations, max_minutes=args.minutes,
                      eval_every=args.eval_every, checkpoint_every=args.eval_every,
@@ -815,7 +826,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--iterations", type=int, help="iteration budget")
     p.add_argument("--batch-size", type=int)
     p.add_argument("--nf", type=int)
-    p.add_argument("--instances", type=int, help="n (default 5)")
+    p.add_argument("--instances", type=int,
+                   help="n, the parts per bin (default: the simulated data set's; with --bag, 5)")
     p.add_argument("--composite", choices=["average", "zbuffer"])
     p.add_argument("--lambda-real", type=float)
     p.add_argument("--matching", choices=["hungarian", "ot", "greedy"])

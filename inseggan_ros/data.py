@@ -120,13 +120,15 @@ def load_sim_split(root, split: str, cfg: PreprocessConfig | None = None,
 def load_sim_training(root, train_frames: int | None = None, val_frames: int | None = None,
                       progress: bool = False) -> tuple[dict, dict, PreprocessConfig, dict]:
     """What `inseggan train` learns from in a simulated data set: (train split, val split, their
-    preprocessing, a description for the checkpoint: source, path, frame counts and the camera,
-    which sets the template's scale). `*_frames` keep the first scenes only."""
+    preprocessing, a description for the checkpoint: source, path, frame counts, the parts per
+    bin and the camera, which sets the template's scale). `*_frames` keep the first scenes only."""
     prep = sim_preprocess_config(root)
     train = load_sim_split(root, "train", prep, limit=train_frames, progress=progress)
     val = load_sim_split(root, "val", prep, limit=val_frames)
+    scene = load_meta(root)["scene"]
     info = {"source": "simulated data set", "path": str(root), "train_frames": len(train["x"]),
-            "val_frames": len(val["x"]), "camera": load_meta(root)["scene"]["camera"]}
+            "val_frames": len(val["x"]), "instances": int(scene["instances"]),
+            "camera": scene["camera"]}
     return train, val, prep, info
 
 

@@ -67,12 +67,17 @@ def unpack(path: Path) -> tuple[dict, dict, dict, dict]:
 
 def run(args) -> int:
     tr, val, prep, info = unpack(args.packed)
+    n = args.instances or info.get("instances")  # the parts per bin, as `inseggan train` takes
+    if n is None:
+        print(f"note: {args.packed} does not say how many parts a bin holds (packed before it "
+              "did) and no --instances given: the config's n", file=sys.stderr)
     overrides = {"max_minutes": args.minutes, "seed": args.seed, "batch_size": args.batch_size,
                  "nf": args.nf, "spheres": args.spheres, "eval_every": args.eval_every,
-                 "checkpoint_every": args.eval_every}
+                 "checkpoint_every": args.eval_every, "n_instances": n}
     cfg = get_config(args.config, **overrides)
     rod = f" ({cfg.model.spheres} spheres)" if cfg.model.renderer == "spheres" else ""
-    print(f"{args.config}: nf {cfg.model.nf}, {cfg.model.renderer} renderer{rod}, "
+    print(f"{args.config}: n {cfg.model.n_instances}, nf {cfg.model.nf}, "
+          f"{cfg.model.renderer} renderer{rod}, "
           f"batch {cfg.batch_size}, {len(tr['x'])} frames, "
           f"{args.minutes} min on {args.device}", flush=True)
     t0 = time.perf_counter()
@@ -152,6 +157,7 @@ def main(argv=None) -> int:
     p.add_argument("--batch-size", type=int)
     p.add_argument("--nf", type=int)
     p.add_argument("--spheres", type=int, help="the rod's spheres (renderer 'spheres')")
+    p.add_argument("--instances", type=int, help="n (default: the packed data set's)")
     p.add_argument("--eval-every", type=int)
     p.add_argument("--half", action="store_true", help="slim checkpoint's weights in float16")
     p.add_argument("--quiet", action="store_true")

@@ -107,3 +107,17 @@ def test_ddp_two_processes_gloo_identical_weights(tmp, tiny_data):
     assert summary["world_size"] == 2 and summary["iterations"] == 6
     sums = summary["weights_sha256_per_rank"]
     assert len(sums) == 2 and sums[0] == sums[1], "ranks disagree after DDP training"
+
+
+def test_n_is_the_data_sets_parts_per_bin_unless_given(tmp):
+    """A simulated data set says how many parts its bins hold; a model of 5 instances fitted to
+    bins of 4 would render a part too many in every frame."""
+    data = tmp / "four"
+    run_cli("simulate", "--quiet", "--instances", "4", "--count", "10", "--split", "0.6,0.4,0",
+            "--workers", "1", "--out", data, check=True)
+    tiny = [a for a in TINY if a not in ("--instances", "5")]
+    for extra, n in (([], 4), (["--instances", "3"], 3)):
+        out = tmp / f"run{n}"
+        run_cli("train", "--data", data, "--out", out, "--iterations", "1", "--eval-every", "1",
+                *tiny, *extra, timeout=600, check=True)
+        assert checkpoint.load(out / "last.pt")["model_config"]["n_instances"] == n
