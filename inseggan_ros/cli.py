@@ -204,9 +204,9 @@ def _instances(args) -> int | None:
     config's own (a bag does not say how many parts its bin holds)."""
     if args.instances is not None or not args.data:
         return args.instances
-    from .data import load_meta
+    from .data import parts_per_bin
 
-    return int(load_meta(args.data)["scene"]["instances"])
+    return parts_per_bin(args.data)
 
 
 def cmd_train(args) -> int:

@@ -117,6 +117,12 @@ def load_sim_split(root, split: str, cfg: PreprocessConfig | None = None,
     return out
 
 
+def parts_per_bin(root) -> int:
+    """How many parts every bin of a simulated data set holds (its scenes' `instances`): the n
+    a model of it renders."""
+    return int(load_meta(root)["scene"]["instances"])
+
+
 def load_sim_training(root, train_frames: int | None = None, val_frames: int | None = None,
                       progress: bool = False) -> tuple[dict, dict, PreprocessConfig, dict]:
     """What `inseggan train` learns from in a simulated data set: (train split, val split, their
@@ -125,10 +131,9 @@ def load_sim_training(root, train_frames: int | None = None, val_frames: int | N
     prep = sim_preprocess_config(root)
     train = load_sim_split(root, "train", prep, limit=train_frames, progress=progress)
     val = load_sim_split(root, "val", prep, limit=val_frames)
-    scene = load_meta(root)["scene"]
     info = {"source": "simulated data set", "path": str(root), "train_frames": len(train["x"]),
-            "val_frames": len(val["x"]), "instances": int(scene["instances"]),
-            "camera": scene["camera"]}
+            "val_frames": len(val["x"]), "instances": parts_per_bin(root),
+            "camera": load_meta(root)["scene"]["camera"]}
     return train, val, prep, info
 
 

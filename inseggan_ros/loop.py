@@ -229,7 +229,6 @@ def learn_shape(data, out, train_cfg, progress: bool = True, val_frames: int = 1
     from dataclasses import replace
 
     from .data import load_sim_training
-    from .sim.dataset import load_meta
     from .train import train
 
     out = Path(out)
@@ -249,9 +248,9 @@ def learn_shape(data, out, train_cfg, progress: bool = True, val_frames: int = 1
                 "camera": asdict(camera_from_bag(data.path, data.topic)[0]),
                 "view": bag_view(frames)}  # with the camera: the template's size in metres
     else:
-        n = int(load_meta(data)["scene"]["instances"])
         frames, val, prep, info = load_sim_training(data, val_frames=val_frames,
                                                     progress=progress)
+        n = info["instances"]
     train_cfg = replace(train_cfg, model=replace(train_cfg.model, n_instances=n))
     frames.pop("labels", None)  # the shape is learned without labels
     train(train_cfg, frames, val, out, prep.to_dict(), info, resume=(out / "last.pt").is_file(),
