@@ -470,7 +470,7 @@ def cmd_eval(args) -> int:
         raise ValueError(f"--threads {args.threads} invalid; valid: >= 1")
     torch.set_num_threads(args.threads)
     seg = Segmenter.from_checkpoint(resolve_model(str(args.model)), device=args.device)
-    seg.inference = settings.resolve(seg.inference, args)
+    seg.inference = settings.resolve(seg.inference, args, seg.stored_settings)
     n = seg.model_cfg.n_instances
     if args.data:
         d = data_mod.load_sim_split(args.data, args.split, seg.prep_cfg, limit=args.frames)
@@ -526,7 +526,7 @@ def cmd_card_settings(args) -> int:
 
     t0 = time.perf_counter()
     seg = Segmenter.from_checkpoint(Path(args.model) / "model.pt", device="cpu")
-    inference = settings.resolve(seg.inference, args)
+    inference = settings.resolve(seg.inference, args, seg.stored_settings)
     also = _also_profiles(args, inference)
     card = apply_settings(args.model, args.data, inference, also=also)
     t = card["test"]
@@ -557,7 +557,7 @@ def cmd_export(args) -> int:
     for flag in ("topic", "labels_topic"):
         if getattr(args, flag):
             raise ValueError(f"--{flag.replace('_', '-')} goes with --bag, not --data")
-    inference = settings.resolve(InferenceConfig(), args)
+    inference = settings.resolve(InferenceConfig(), args, stored=False)
     also = _also_profiles(args, inference)
     card = export_model(args.checkpoint, args.data, args.name,
                         args.out or Path("models") / args.name,
@@ -584,8 +584,9 @@ def _export_label_free(args) -> int:
     if args.frames < 1:
         raise ValueError(f"--frames {args.frames} invalid; valid: >= 1")
     # the checkpoint's own settings (an exported model.pt has them), then the flags
-    stored = load(args.checkpoint).get("inference", {})
-    inference = settings.resolve(InferenceConfig.from_dict(stored), args)
+    stored = load(args.checkpoint).get("inference")
+    inference = settings.resolve(InferenceConfig.from_dict(stored or {}), args,
+                                 stored is not None)
     out = args.out or Path("models") / args.name
     if args.bag:
         card = export_from_bag(args.checkpoint, args.bag, args.name, out, args.topic,
@@ -617,7 +618,7 @@ def cmd_check(args) -> int:
     model = Path(args.model).expanduser()
     model = model / "model.pt" if model.is_dir() else resolve_model(str(args.model), "--model")
     seg = Segmenter.from_checkpoint(model, device="cpu")
-    seg.inference = settings.resolve(seg.inference, args)
+    seg.inference = settings.resolve(seg.inference, args, seg.stored_settings)
     bag = resolve_bag(str(args.bag), "--bag")
     frames = selfcheck.load_bag_frames(bag, seg.prep_cfg, args.topic, count=args.frames)
     out = selfcheck.segment_frames(seg, frames["x"], frames["fg"])

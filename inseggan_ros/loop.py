@@ -307,8 +307,8 @@ def _shipped_segmenter(file: Path, cfg: LoopConfig):
     from .segment import Segmenter
 
     seg = Segmenter.from_checkpoint(file, device="cpu")
-    seg.inference = settings.apply(seg.inference,
-                                   settings.read_params_file(resolve_config(cfg.export_settings)))
+    seg.inference = settings.apply_file(seg.inference, resolve_config(cfg.export_settings),
+                                        seg.stored_settings)
     return seg
 
 

@@ -178,6 +178,7 @@ class Segmenter:
             p.requires_grad_(False)
         self.model_cfg, self.prep_cfg, self.tau, self.device = model_cfg, prep_cfg, tau, device
         self.inference = inference
+        self.stored_settings = True  # `inference` is what the model ships (see from_checkpoint)
         self._encoders = {}  # precision -> the encoder that computes in it
         self.superpixel_thread = superpixel_thread
         self._pool = None  # made on first use
@@ -238,9 +239,13 @@ class Segmenter:
             raise checkpoint.CheckpointError(f"{path}: its settings use a label head it does not "
                                              "have (label_head: on)")
         tau = float(state.get("tau", -0.5) if tau is None else tau)
-        return Segmenter(G, E, cfg, prep, tau, device=checkpoint.pick_device(device),
-                         inference=inference, label_head=head,
-                         superpixel_thread=superpixel_thread)
+        seg = Segmenter(G, E, cfg, prep, tau, device=checkpoint.pick_device(device),
+                        inference=inference, label_head=head,
+                        superpixel_thread=superpixel_thread)
+        # a training checkpoint stores no settings: a parameters file then applies over
+        # realtime.yaml's (`settings.file_base`), not over these bare defaults
+        seg.stored_settings = "inference" in state
+        return seg
 
     @torch.no_grad()
     def segment_batch(self, x: np.ndarray | torch.Tensor, fg=None, tau: float | None = None,

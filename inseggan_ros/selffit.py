@@ -73,7 +73,7 @@ def _settings(model: Path, name: str, tau: float):
     from .segment import Segmenter
 
     seg = Segmenter.from_checkpoint(model, device="cpu", tau=tau)
-    return seg, settings.apply(seg.inference, settings.read_params_file(resolve_config(name)))
+    return seg, settings.apply_file(seg.inference, resolve_config(name), seg.stored_settings)
 
 
 def _label_chunk(job) -> tuple[int, np.ndarray]:

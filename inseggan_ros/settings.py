@@ -228,12 +228,32 @@ def read_params_file(path) -> dict:
     return out
 
 
-def resolve(base: InferenceConfig, args) -> InferenceConfig:
-    """`base`, then the --profile parameters file, then the explicit flags (`add_flags`)."""
+def file_base(cfg: InferenceConfig, stored: bool = True) -> InferenceConfig:
+    """What a parameters file applies to: a model's own settings, or, for a checkpoint that
+    stores none (a training checkpoint), realtime.yaml's, from which every exported model
+    starts. So a file that leaves a setting to the model (quality.yaml leaves the vote's and
+    the split's scales) means the same for both; over the bare built-in defaults it would turn
+    the vote and the split off."""
+    if stored:
+        return cfg
+    from .paths import resolve_config
+
+    return apply(cfg, read_params_file(resolve_config("realtime")))
+
+
+def apply_file(cfg: InferenceConfig, name, stored: bool = True) -> InferenceConfig:
+    """The parameters file `name` (a path, or a shipped one's name: "quality") applied to
+    `file_base(cfg, stored)`."""
+    from .paths import resolve_config
+
+    return apply(file_base(cfg, stored), read_params_file(resolve_config(str(name))))
+
+
+def resolve(base: InferenceConfig, args, stored: bool = True) -> InferenceConfig:
+    """`base`, then the --profile parameters file, then the explicit flags (`add_flags`).
+    `stored`: whether `base` is settings a model stores; if not (a training checkpoint's bare
+    defaults), a --profile file applies over realtime.yaml's (`file_base`)."""
     profile = getattr(args, "profile", None)
     if profile:
-        from .paths import resolve_config
-
-        profile = resolve_config(str(profile))  # a path, or a shipped file's name ("quality")
-    params = read_params_file(profile) if profile else {}
-    return apply(base, {**params, **from_flags(args)})
+        base = apply_file(base, profile, stored)
+    return apply(base, from_flags(args))

@@ -516,9 +516,46 @@ def test_a_cards_profile_row_is_what_the_node_runs_with_that_file(tmp_path):
             rows["partial"].refine_hypotheses) == (4, 160, 8)
     assert (rows["fastest"].superpixel_scale, rows["fastest"].split_scale) == (0, 0)
     quality = settings.read_params_file(config / "quality.yaml")
-    assert rows["quality"].superpixel_scale == quality["superpixel_scale"]
+    assert "superpixel_scale" not in quality and "split_scale" not in quality
+    assert (rows["quality"].superpixel_scale, rows["quality"].split_scale) == (160, 800)
     assert rows["quality"].refine_steps == quality["refine_steps"] > 0
     assert _also_profiles(argparse.Namespace(also_profile=None), base) == {}
+
+
+def test_a_parameters_file_applies_over_realtime_for_a_checkpoint_without_settings(tmp_path):
+    """A training checkpoint stores no settings. A parameters file then applies over
+    realtime.yaml's (what every exported model starts from), not over the bare built-in
+    defaults: quality.yaml, which leaves the vote's and the split's scales to the model, keeps
+    them on for it, in `inseggan eval --profile`, the self-fitting's labels and the node; a
+    model that stores its own scale keeps it."""
+    import argparse
+
+    from inseggan_ros import checkpoint, settings
+    from inseggan_ros.segment import Segmenter
+    from inseggan_ros.selffit import _settings
+
+    config = Path(__file__).resolve().parents[1] / "config"
+    realtime = settings.read_params_file(config / "realtime.yaml")
+    shipped = Path(__file__).resolve().parents[1] / "models" / "cylinder" / "model.pt"
+    state = checkpoint.load(shipped)
+    del state["inference"]
+    bare = tmp_path / "bare.pt"
+    torch.save(state, bare)
+
+    seg = Segmenter.from_checkpoint(bare, device="cpu")
+    assert not seg.stored_settings and seg.inference.superpixel_scale == 0  # bare defaults
+    assert Segmenter.from_checkpoint(shipped, device="cpu").stored_settings
+    args = argparse.Namespace(profile="quality")
+    for cfg in (settings.resolve(seg.inference, args, seg.stored_settings),
+                _settings(bare, "quality", tau=-0.5)[1]):
+        assert (cfg.superpixel_scale, cfg.split_scale) == (realtime["superpixel_scale"],
+                                                           realtime["split_scale"])
+        assert (cfg.refine_steps, cfg.refine_swaps) == (48, 4)
+    # no file: the bare settings stay what the checkpoint gives (eval's --refine-steps etc.)
+    assert settings.resolve(seg.inference, argparse.Namespace(), False) == seg.inference
+    # a model that stores its own scale keeps it under the same file
+    own = settings.apply(seg.inference, {**realtime, "superpixel_scale": 160})
+    assert settings.apply_file(own, "quality").superpixel_scale == 160
 
 
 def test_a_bfloat16_encoder_gives_the_float32_labels():

@@ -103,6 +103,10 @@ class SegmenterNode(Node):
                 superpixel_thread=self.get_parameter("superpixel_thread").value)
         except ValueError as e:  # e.g. cuda asked for but not available
             raise ConfigError(f"parameter device={device!r}: {e}") from None
+        # a training checkpoint stores no settings: it runs with realtime.yaml's, as every
+        # exported model starts with, and a parameters file applies over those
+        self.model.inference = settings.file_base(self.model.inference,
+                                                  self.model.stored_settings)
         self._declare_runtime()
         self.p = {}
         try:
