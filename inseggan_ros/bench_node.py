@@ -64,7 +64,8 @@ def in_process_reference(frames, model_path: str, params: dict, repeats: int = 3
     torch.set_num_threads(1)
     seg = Segmenter.from_checkpoint(resolve_model(model_path), device="cpu",
                                     superpixel_thread=superpixel_thread)
-    cfg = settings.apply(seg.inference, params)
+    # as the node: a checkpoint without settings runs realtime.yaml's
+    cfg = settings.apply(settings.file_base(seg.inference, seg.stored_settings), params)
     prep = node_defaults(seg.prep_cfg,
                          [depth_to_metres(f, "16UC1") for f in frames[:BIN_FRAMES]])
     infer_ms, conv_ms = [], []

@@ -21,7 +21,7 @@ import torch.nn.functional as F
 
 
 def consensus(lab, loss, T, top):
-    """lab (B, H, s, s) uint8 labels of each start, loss (B, H) -> (B, s, s)."""
+    """Labels (B, H, s, s) uint8 of each start, fit losses (B, H) -> voted labels (B, s, s)."""
     B, H = loss.shape
     n = int(lab.max())
     out = np.zeros(lab.shape[:1] + lab.shape[2:], np.uint8)
@@ -62,7 +62,7 @@ def main():
     seg = Segmenter.from_checkpoint(a.model)
     cfg = seg.inference
     d = data_mod.load_sim_split(a.data, a.split, seg.prep_cfg, limit=a.frames)
-    x = torch.as_tensor(d["x"]); fg = torch.as_tensor(d["fg"]); gt = d["labels"]
+    x, fg, gt = torch.as_tensor(d["x"]), torch.as_tensor(d["fg"]), d["labels"]
     n = seg.model_cfg.n_instances
     heights = (d["x"][:, 0] + 1) / 2
     base = {}
@@ -80,7 +80,8 @@ def main():
             loss = _fit_loss(G, pose, F.adaptive_avg_pool2d(xb, 32), G.geometry())
             renders = G.render_poses(pose.reshape(B * H, n, 6))
             lab = labels_from_renders(renders, seg.tau, fg[i:i + 50].repeat_interleave(H, 0))
-            labs.append(lab.reshape(B, H, 64, 64).numpy()); losses.append(loss.numpy())
+            labs.append(lab.reshape(B, H, 64, 64).numpy())
+            losses.append(loss.numpy())
     lab, loss = np.concatenate(labs), np.concatenate(losses)
 
     def finish(l0):

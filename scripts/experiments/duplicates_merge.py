@@ -48,7 +48,7 @@ def main():
     seg = Segmenter.from_checkpoint(a.model)
     cfg = seg.inference
     d = data_mod.load_sim_split(a.data, a.split, seg.prep_cfg)
-    x = torch.as_tensor(d["x"]); fg = torch.as_tensor(d["fg"]); gt = d["labels"]
+    x, fg, gt = torch.as_tensor(d["x"]), torch.as_tensor(d["fg"]), d["labels"]
     n = seg.model_cfg.n_instances
     heights = (d["x"][:, 0] + 1) / 2
     base = {m: miou_batch(np.stack([BASELINES[m](heights[i], d["fg"][i], n, seed=i)
@@ -85,7 +85,8 @@ def main():
     for thr in a.thr:
         l1, merged = merge(lab, rend, seg.tau, thr)
         s1 = finish(l1)
-        print(f"thr {thr}: {merged} merges;", fmt(s1), f"frames changed {(np.abs(s1 - s0) > 1e-9).sum()}")
+        changed = (np.abs(s1 - s0) > 1e-9).sum()
+        print(f"thr {thr}: {merged} merges;", fmt(s1), f"frames changed {changed}")
     for m, s in base.items():
         print(m, fmt(s))
 
