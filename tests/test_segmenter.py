@@ -274,3 +274,35 @@ def test_shipped_parameter_files_set_the_segmenter(profile):
         assert got[2].startswith("rejected")
     finally:
         assert stop(seg) == 0
+
+
+def test_quality_file_keeps_the_models_own_vote_and_a_training_checkpoint_runs_realtime(
+        tmp_path):
+    """quality.yaml leaves the vote's and the split's scales to the model: the pin connector
+    keeps its 160. A training checkpoint stores no settings: the node runs it with
+    realtime.yaml's, and the same file applies over those (the vote and the split stay on)."""
+    from inseggan_ros import checkpoint
+    from inseggan_ros.settings import read_params_file
+
+    import torch
+
+    quality = read_params_file(shipped_params_file("quality"))
+    realtime = read_params_file(shipped_params_file("realtime"))
+    state = checkpoint.load(REPO / "models" / "cylinder" / "model.pt")
+    del state["inference"]
+    bare = tmp_path / "bare.pt"
+    torch.save(state, bare)
+    names = ("superpixel_scale", "split_scale", "refine_steps", "refine_hypotheses")
+    own = {**quality, "superpixel_scale": 160, "split_scale": 800}  # the pin connector's
+    cases = [(("model_path:=pin_connector",), True, own),
+             ((f"model_path:={bare}",), True, {**realtime, **quality}),
+             ((f"model_path:={bare}",), False, realtime)]
+    for k, (params, with_file, want) in enumerate(cases):
+        ns = f"/seg_own_scale_{k}"
+        extra = ("--params-file", str(shipped_params_file("quality"))) if with_file else ()
+        seg = start_segmenter(ns, *params, extra=extra)
+        try:
+            got = get_params(f"{ns}/segmenter", *names)
+        finally:
+            assert stop(seg) == 0
+        assert got == {name: want[name] for name in names}, (params, with_file)
