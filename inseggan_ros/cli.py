@@ -343,7 +343,7 @@ def cmd_shape_fit(args) -> int:
 
     cfg = ShapeFitConfig(pieces=args.pieces, walls=args.walls, iterations=args.iterations,
                          frames=args.frames, eval_every=args.eval_every, seed=args.seed,
-                         thickness=args.thickness, start=args.start)
+                         thickness=args.thickness)
     file = _model_file(args.model)
     frames = _bag_or_data(args)
     report = None
@@ -915,10 +915,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--thickness", choices=("data", "rod"), default="data",
                    help="the starting box's height: the frames' flat-lying parts' (data) or the "
                         "rod's diameter (rod)")
-    p.add_argument("--start", choices=("copies", "segments"), default="copies",
-                   help="the pieces at the start: copies of the box (copies) or the box cut "
-                        "into pieces along the rod's axis (segments), each free to widen or "
-                        "narrow its stretch")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_shape_fit)

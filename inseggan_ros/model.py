@@ -513,30 +513,6 @@ class ConvexGenerator(TemplateGenerator):
         self.extent.copy_(_softplus_inverse((support - CONVEX_MIN_EXTENT + noise).clamp_min(1e-3)))
 
     @torch.no_grad()
-    def init_segments(self, half: tuple[float, float, float]) -> None:
-        """The box of half-extents `half` cut across its first axis into the K pieces, in order
-        (piece k's planes reach back to piece k-1's centre, as `halfspaces` makes them: the
-        union is the box). Each piece then owns a stretch of the part's length and can widen
-        or narrow there on its own: a flange on a shaft, a head on a bolt; copies of the one
-        box (`init_box`) stay one box (docs/experiments.md, 2026-11-27, night)."""
-        K, P = self.extent.shape
-        a, b, c = (float(v) for v in half)
-        if min(a / K, b, c) <= CONVEX_MIN_EXTENT:
-            raise ValueError(f"box half-extents {half} invalid for {K} segments; valid: "
-                             f"{half[0]} / {K}, and the others, each > {CONVEX_MIN_EXTENT}")
-        dev = self.extent.device
-        step = 2 * a / K
-        x = -a + step * (torch.arange(K, device=dev, dtype=torch.float32) + 0.5)
-        self.centre.copy_(torch.stack([x, torch.zeros_like(x), torch.full_like(x, c)], 1))
-        self.orientation.zero_()
-        self.tilt.zero_()
-        support = self.base.abs() @ torch.tensor([a / K, b, c], device=dev)  # (P,): one piece
-        back = (self.base[:, 0] < -0.5).float() * step  # the -x plane: reaches centre k-1 anyway
-        extent = support[None].expand(K, P).clone()
-        extent[1:] = extent[1:] - back
-        self.extent.copy_(_softplus_inverse((extent - CONVEX_MIN_EXTENT).clamp_min(1e-3)))
-
-    @torch.no_grad()
     def init_from_data(self, x, n_instances: int) -> tuple[float, float, float]:
         """Start as the box the training frames suggest: (N, 1, H, W) model inputs -> a square
         footprint of the mean visible area per instance, and as its thickness the lower quartile

@@ -63,8 +63,6 @@ class ShapeFitConfig:
     val_frames: int = 100  # reconstruction error reported on these (no label read)
     thickness: str = "data"  # the starting box's height: "data" (the frames' lower-quartile
     # foreground height, where thinner than the rod) or "rod" (the rod's diameter)
-    start: str = "copies"  # the pieces: "copies" of the starting box, or its "segments"
-    # along the rod's axis (`ConvexGenerator.init_segments`)
     seed: int = 0
 
     def __post_init__(self):
@@ -76,8 +74,6 @@ class ShapeFitConfig:
             raise ValueError(f"walls {self.walls!r} invalid; valid: a multiple of 4, >= 4")
         if self.thickness not in ("data", "rod"):
             raise ValueError(f"thickness {self.thickness!r} invalid; valid: data, rod")
-        if self.start not in ("copies", "segments"):
-            raise ValueError(f"start {self.start!r} invalid; valid: copies, segments")
         for key in ("encoder_lr", "template_lr"):
             if not 0 < getattr(self, key) < 1:
                 raise ValueError(f"{key} {getattr(self, key)!r} invalid; valid: in (0, 1)")
@@ -130,11 +126,7 @@ def convex_from_rod(state: dict, cfg: ShapeFitConfig, source="checkpoint", x=Non
     mcfg.update(renderer="convex", pieces=cfg.pieces, walls=cfg.walls, floor_contact=True)
     G = ConvexGenerator(ModelConfig.from_dict(mcfg))
     G.pose.load_state_dict(rod.pose.state_dict())
-    box = rod_box(rod, x if cfg.thickness == "data" else None)
-    if cfg.start == "segments":
-        G.init_segments(box)
-    else:
-        G.init_box(box)
+    G.init_box(rod_box(rod, x if cfg.thickness == "data" else None))
     # without the rod encoder's distillation record: the encoder's next fit (the loop's) is
     # the one this model's card accounts for
     new = {k: v for k, v in state.items()

@@ -38,37 +38,6 @@ def test_the_convex_start_is_the_rods_bounding_box_with_its_encoder():
         torch.testing.assert_close(v, E2.state_dict()[k])
 
 
-def test_the_segments_start_is_the_same_box_cut_along_the_rods_axis():
-    """`start="segments"`: the K pieces cut the starting box across the rod's axis, in order;
-    their union is the box of the copies start, height for height, and each piece holds the
-    previous one's centre (one connected body)."""
-    state = checkpoint.load(MODEL)
-    _, rod, _ = checkpoint.build_models(state, MODEL)
-    _, cut, _ = convex_from_rod(state, ShapeFitConfig(pieces=3, thickness="rod",
-                                                      start="segments"))
-    copies = ConvexGenerator(cut.cfg)
-    copies.init_box(rod_box(rod), jitter=0.0)  # the copies start, without its jitter
-    x = cut.centre.detach()[:, 0]
-    assert bool((x[1:] > x[:-1]).all()) and float(x.sum().abs()) < 1e-5
-    n, d = cut.halfspaces()
-    prev = torch.cat([cut.centre[:1], cut.centre[:-1]]).detach()
-    assert bool(((n * prev[:, None]).sum(-1) <= d + 1e-6).all())
-    # the same solid: a point lies in the box exactly when it lies in one of the pieces
-    pts = (torch.rand(20000, 3, generator=torch.Generator().manual_seed(0)) * 2 - 1) * 0.6
-
-    def inside(G):
-        n, d = (t.detach() for t in G.halfspaces())
-        return ((torch.einsum("kpi,mi->mkp", n, pts) <= d).all(-1)).any(-1)
-
-    assert torch.equal(inside(copies), inside(cut)) and 0.05 < float(inside(cut).float().mean())
-    # and the same top-down render, straight down
-    pose = torch.zeros(1, 1, 6)
-    with torch.no_grad():
-        torch.testing.assert_close(copies.render_poses(pose), cut.render_poses(pose))
-    with pytest.raises(ValueError, match="start 'halves' invalid"):
-        ShapeFitConfig(start="halves")
-
-
 def test_a_short_recording_still_holds_frames_out_to_keep_the_best_fit_by():
     """A recording's frames are one sequence: `frames` to fit, the next `val_frames` to measure
     the fit on; a recording shorter than both (320 frames of a 400-frame bag, the default 1000
