@@ -303,12 +303,10 @@ def _shipped_segmenter(file: Path, cfg: LoopConfig):
     """The Segmenter of `file` with `cfg.export_settings` over its checkpoint's (a training
     checkpoint carries only the bare defaults), as the exported model will run."""
     from . import settings
-    from .paths import resolve_config
     from .segment import Segmenter
 
     seg = Segmenter.from_checkpoint(file, device="cpu")
-    seg.inference = settings.apply_file(seg.inference, resolve_config(cfg.export_settings),
-                                        seg.stored_settings)
+    seg.inference = settings.apply_file(seg.inference, cfg.export_settings, seg.stored_settings)
     return seg
 
 

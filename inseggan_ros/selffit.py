@@ -69,11 +69,10 @@ def check_settings(name: str) -> None:
 
 def _settings(model: Path, name: str, tau: float):
     from . import settings
-    from .paths import resolve_config
     from .segment import Segmenter
 
     seg = Segmenter.from_checkpoint(model, device="cpu", tau=tau)
-    return seg, settings.apply_file(seg.inference, resolve_config(name), seg.stored_settings)
+    return seg, settings.apply_file(seg.inference, name, seg.stored_settings)
 
 
 def _label_chunk(job) -> tuple[int, np.ndarray]:

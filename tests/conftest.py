@@ -27,6 +27,19 @@ def installed_executable(name: str) -> Path:
     return Path(prefix) / "lib" / "inseggan_ros" / name
 
 
+def checkpoint_without_settings(path: Path) -> Path:
+    """The shipped cylinder model without its stored settings, as a training checkpoint has
+    none, written to `path`."""
+    import torch
+
+    from inseggan_ros import checkpoint
+
+    state = checkpoint.load(REPO / "models" / "cylinder" / "model.pt")
+    del state["inference"]
+    torch.save(state, path)
+    return path
+
+
 def run_cli(*args, timeout=300, check=False) -> subprocess.CompletedProcess:
     """Run the installed `inseggan` command."""
     proc = subprocess.run([str(installed_executable("inseggan")), *map(str, args)],

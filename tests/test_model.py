@@ -530,17 +530,16 @@ def test_a_parameters_file_applies_over_realtime_for_a_checkpoint_without_settin
     model that stores its own scale keeps it."""
     import argparse
 
-    from inseggan_ros import checkpoint, settings
+    from conftest import checkpoint_without_settings
+
+    from inseggan_ros import settings
     from inseggan_ros.segment import Segmenter
     from inseggan_ros.selffit import _settings
 
     config = Path(__file__).resolve().parents[1] / "config"
     realtime = settings.read_params_file(config / "realtime.yaml")
     shipped = Path(__file__).resolve().parents[1] / "models" / "cylinder" / "model.pt"
-    state = checkpoint.load(shipped)
-    del state["inference"]
-    bare = tmp_path / "bare.pt"
-    torch.save(state, bare)
+    bare = checkpoint_without_settings(tmp_path / "bare.pt")
 
     seg = Segmenter.from_checkpoint(bare, device="cpu")
     assert not seg.stored_settings and seg.inference.superpixel_scale == 0  # bare defaults

@@ -6,7 +6,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import BAGS, REPO, get_params, installed_executable, set_params
+from conftest import (BAGS, REPO, checkpoint_without_settings, get_params,
+                      installed_executable, set_params)
 
 from inseggan_ros import bags, image_codec
 from inseggan_ros.baselines import kmeans
@@ -281,17 +282,11 @@ def test_quality_file_keeps_the_models_own_vote_and_a_training_checkpoint_runs_r
     """quality.yaml leaves the vote's and the split's scales to the model: the pin connector
     keeps its 160. A training checkpoint stores no settings: the node runs it with
     realtime.yaml's, and the same file applies over those (the vote and the split stay on)."""
-    from inseggan_ros import checkpoint
     from inseggan_ros.settings import read_params_file
-
-    import torch
 
     quality = read_params_file(shipped_params_file("quality"))
     realtime = read_params_file(shipped_params_file("realtime"))
-    state = checkpoint.load(REPO / "models" / "cylinder" / "model.pt")
-    del state["inference"]
-    bare = tmp_path / "bare.pt"
-    torch.save(state, bare)
+    bare = checkpoint_without_settings(tmp_path / "bare.pt")
     names = ("superpixel_scale", "split_scale", "refine_steps", "refine_hypotheses")
     own = {**quality, "superpixel_scale": 160, "split_scale": 800}  # the pin connector's
     cases = [(("model_path:=pin_connector",), True, own),
