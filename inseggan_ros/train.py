@@ -520,7 +520,9 @@ def _train(cfg, train_data, val_data, out, prep_cfg, data_info, device, resume, 
         return improved
 
     if is_main and val_data is not None and run.iteration == 0:
-        validate()  # the starting point, so that curves show what training changed
+        # the starting point, so that curves show what training changed; it is best.pt until a
+        # later validation scores higher (a run that never does keeps its starting weights)
+        checkpoint_now(best=validate())
     try:
         while run.iteration < cfg.max_iterations and elapsed() < budget:
             try:

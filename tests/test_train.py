@@ -122,3 +122,23 @@ def test_n_is_the_data_sets_parts_per_bin_unless_given(tmp):
         run_cli("train", "--data", data, "--out", out, "--iterations", "1", "--eval-every", "1",
                 *tiny, *extra, timeout=600, check=True)
         assert checkpoint.load(out / "last.pt")["model_config"]["n_instances"] == n
+
+
+def test_best_checkpoint_is_the_best_validation_even_the_starting_point(tmp, tiny_data):
+    """best.pt holds the weights of the best validation in the log. A run whose starting point is
+    never beaten (learning rates too small to move a weight, as a run that does not learn) keeps
+    its starting weights, not its last ones under the starting point's score and tau."""
+    from inseggan_ros.data import load_sim_training
+    from inseggan_ros.train import get_config, train
+
+    tr, val, prep, info = load_sim_training(tiny_data, None, None, progress=False)
+    cfg = get_config("cpu_spheres", nf=8, batch_size=8, n_instances=5, max_iterations=3,
+                     eval_every=40, lr_g=1e-12, lr_d=1e-12, lr_e=1e-12)
+    out = tmp / "run"
+    train(cfg, tr, val, out, prep, info, device="cpu", progress=False)
+    val_log = _val(out / "log.jsonl")
+    assert [v["iteration"] for v in val_log] == [0, 3]  # the start, then the end of the budget
+    best = max(val_log, key=lambda v: v["miou"])  # the first of equal scores: only > improves
+    state = checkpoint.load(out / "best.pt")
+    assert state["iteration"] == best["iteration"]
+    assert state["best"] == best["miou"] and state["tau"] == best["tau"]
