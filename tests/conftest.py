@@ -30,14 +30,11 @@ def installed_executable(name: str) -> Path:
 def checkpoint_without_settings(path: Path) -> Path:
     """The shipped cylinder model without its stored settings, as a training checkpoint has
     none, written to `path`."""
-    import torch
-
     from inseggan_ros import checkpoint
 
     state = checkpoint.load(REPO / "models" / "cylinder" / "model.pt")
     del state["inference"]
-    torch.save(state, path)
-    return path
+    return checkpoint.save(path, state)
 
 
 def run_cli(*args, timeout=300, check=False) -> subprocess.CompletedProcess:

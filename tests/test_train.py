@@ -135,7 +135,7 @@ def test_best_checkpoint_is_the_best_validation_even_the_starting_point(tmp, tin
     cfg = get_config("cpu_spheres", nf=8, batch_size=8, n_instances=5, max_iterations=3,
                      eval_every=40, lr_g=1e-12, lr_d=1e-12, lr_e=1e-12)
     out = tmp / "run"
-    train(cfg, tr, val, out, prep, info, device="cpu", progress=False)
+    train(cfg, tr, val, out, prep.to_dict(), info, device="cpu", progress=False)  # as the CLI
     val_log = _val(out / "log.jsonl")
     assert [v["iteration"] for v in val_log] == [0, 3]  # the start, then the end of the budget
     best = max(val_log, key=lambda v: v["miou"])  # the first of equal scores: only > improves
