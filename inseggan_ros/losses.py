@@ -134,6 +134,22 @@ def pyramid_l1(a: torch.Tensor, b: torch.Tensor, levels: int = 1,
     return loss / levels
 
 
+def matched_masks(cost: np.ndarray, onehot: torch.Tensor, n: int) -> torch.Tensor:
+    """(B, n, m) costs of n renders against m true masks, (B, m, H, W) the masks -> (B, n, H, W):
+    each render's mask under the frame's cheapest one-to-one matching (Hungarian, scipy), zeros
+    for a render left unmatched. The matching runs on the CPU frame by frame, on the small cost
+    matrices alone; the masks are gathered in one indexing on their own device (no copy of
+    them back and forth, which made the loop's encoder stage slower on a GPU than on a CPU)."""
+    B, m = onehot.shape[:2]
+    index = np.full((B, n), m, dtype=np.int64)  # m: the all-zero mask appended below
+    for b in range(B):
+        rows, cols = linear_sum_assignment(cost[b])
+        index[b, rows] = cols
+    padded = torch.cat([onehot, onehot.new_zeros(B, 1, *onehot.shape[2:])], 1)
+    frames = torch.arange(B, device=onehot.device)[:, None]
+    return padded[frames, torch.as_tensor(index, device=onehot.device)]
+
+
 def label_loss(renders: torch.Tensor, labels: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     """Supervision from ground-truth instance labels (simulated scenes of the part, whose every
     label is known): each true instance is explained by one rendered instance, and no rendered
@@ -161,11 +177,7 @@ def label_loss(renders: torch.Tensor, labels: torch.Tensor, x: torch.Tensor) -> 
     with torch.no_grad():
         cost = torch.einsum("bihw,bjhw->bij", err, onehot) / area[:, None].clamp_min(1.0)
         cost = torch.where(area[:, None] > 0, cost, torch.zeros_like(cost)).cpu().numpy()
-    target = torch.zeros(B, n, H, W, dtype=renders.dtype)  # target[b, i]: mask matched to i
-    for b in range(B):
-        rows, cols = linear_sum_assignment(cost[b])
-        target[b, torch.as_tensor(rows)] = onehot[b, torch.as_tensor(cols)].cpu()
-    target = target.to(renders.device)
+    target = matched_masks(cost, onehot, n)  # target[b, i]: the true mask matched to render i
     own = (target * err).sum() / target.sum().clamp_min(1.0)
     return own + above
 
@@ -186,10 +198,6 @@ def ownership_loss(renders: torch.Tensor, labels: torch.Tensor, temperature: flo
         inter = torch.einsum("bihw,bjhw->bij", own * fg, onehot)
         union = (own * fg).sum((2, 3))[:, :, None] + onehot.sum((2, 3))[:, None, :] - inter
         cost = (-(inter / union.clamp_min(1e-6))).cpu().numpy()
-    target = torch.zeros(B, n, H, W, dtype=own.dtype)
-    for b in range(B):
-        rows, cols = linear_sum_assignment(cost[b])
-        target[b, torch.as_tensor(rows)] = onehot[b, torch.as_tensor(cols)].cpu()
-    target = target.to(own.device)
+    target = matched_masks(cost, onehot, n)
     logp = torch.log_softmax(renders / temperature, dim=1)
     return -(target * logp).sum() / target.sum().clamp_min(1.0)

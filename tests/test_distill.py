@@ -190,6 +190,27 @@ def test_label_loss_matches_instances_whatever_their_order():
     assert loss.item() > 0 and off.grad[0, 1].abs().sum() > 0
 
 
+@pytest.mark.parametrize("m", [2, 5, 7])
+def test_matched_masks_give_each_render_its_hungarian_match(m):
+    """`losses.matched_masks` (the label and ownership losses' targets): frame by frame, each
+    render gets the true mask scipy's Hungarian matching gives it and an unmatched render an
+    empty one, with fewer, as many and more true instances than renders."""
+    from scipy.optimize import linear_sum_assignment
+
+    B, n = 4, 5
+    g = torch.Generator().manual_seed(m)
+    onehot = (torch.rand(B, m, 6, 6, generator=g) > 0.5).float()
+    cost = torch.rand(B, n, m, generator=g).numpy()
+    target = losses.matched_masks(cost, onehot, n)
+    assert target.shape == (B, n, 6, 6)
+    for b in range(B):
+        rows, cols = linear_sum_assignment(cost[b])
+        expected = torch.zeros(n, 6, 6)
+        expected[rows] = onehot[b, cols]
+        assert torch.equal(target[b], expected)
+        assert int((target[b].flatten(1).sum(1) == 0).sum()) >= max(n - m, 0)
+
+
 def _label_loss(path, data) -> float:
     """The checkpoint's encoder poses (one start) scored by `losses.label_loss` against the
     labels of simulated scenes."""
