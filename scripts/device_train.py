@@ -60,7 +60,8 @@ def unpack(path: Path) -> tuple[dict, dict, dict, dict]:
     prep = PreprocessConfig.from_dict(meta["prep"])
     tr = {"x": z["train_x"].astype(np.float32), "config": prep,
           "labels": z["train_labels"] if "train_labels" in z else None}
-    val = {"x": z["val_x"].astype(np.float32), "fg": z["val_fg"], "labels": z["val_labels"],
+    val = {"x": z["val_x"].astype(np.float32), "fg": z["val_fg"],
+           "labels": z["val_labels"] if "val_labels" in z else None,  # none from a recording
            "roi": z["val_roi"], "floor_depth": z["val_floor_depth"], "config": prep}
     return tr, val, meta["prep"], meta["info"]
 
