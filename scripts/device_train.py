@@ -8,6 +8,7 @@ on it, exactly as `inseggan train --data` would, and writes a slim copy of the b
 or discriminator state; with --half its weights in float16) so that it can be copied back.
 
     python scripts/device_train.py pack --data data/cone --out packed/cone.npz
+    python scripts/device_train.py pack --bag bags/tilted --instances 5 --out packed/tilted.npz
     python scripts/device_train.py train --packed packed/cone.npz --config paper \
         --minutes 7 --out runs/cone_paper_gpu --device cuda
 
@@ -37,21 +38,50 @@ SLIM_KEYS = ("format", "model_config", "train_config", "preprocess_config", "dat
 
 
 def pack(args) -> int:
-    from inseggan_ros.data import load_sim_training
+    if (args.data is None) == (args.bag is None):
+        raise SystemExit("pack: give --data (a simulated data set) or --bag (a recording)")
+    if args.bag is not None:
+        if args.instances is None or args.with_labels:
+            raise SystemExit("pack --bag: needs --instances N; the frames have no labels to pack")
+        tr, val, prep, info = recording(args.bag, args.instances, args.topic)
+    else:
+        from inseggan_ros.data import load_sim_training
 
-    tr, val, prep, info = load_sim_training(args.data, args.train_frames, progress=True)
+        tr, val, prep, info = load_sim_training(args.data, args.train_frames, progress=True)
     tmp = args.out.with_suffix(".tmp.npz")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     extra = {"train_labels": tr["labels"]} if args.with_labels else {}
+    if val.get("labels") is not None:
+        extra["val_labels"] = val["labels"]
     np.savez_compressed(
         tmp, **extra, train_x=tr["x"].astype(np.float16), val_x=val["x"].astype(np.float16),
-        val_fg=val["fg"], val_labels=val["labels"], val_roi=val["roi"],
+        val_fg=val["fg"], val_roi=val["roi"],
         val_floor_depth=val["floor_depth"],
         meta=np.frombuffer(json.dumps({"prep": prep.to_dict(), "info": info}).encode(), np.uint8))
     tmp.replace(args.out)
     print(f"{args.out}: {len(tr['x'])} training and {len(val['x'])} validation frames, "
           f"{args.out.stat().st_size / 2**20:.1f} MiB")
     return 0
+
+
+def recording(bag: Path, instances: int, topic: str | None, val_frames: int = 100):
+    """A recording's frames as `inseggan loop --bag` learns the shape from them
+    (`loop.learn_shape`): all but the held-out last fifth to train on, the first `val_frames`
+    of those held out to validate on by reconstruction (no labels read)."""
+    from dataclasses import asdict
+
+    from inseggan_ros.data import bag_view
+    from inseggan_ros.loop import BagFrames
+    from inseggan_ros.preprocess import PreprocessConfig
+    from inseggan_ros.sim.user_camera import camera_from_bag
+
+    data, prep = BagFrames(bag, instances, topic), PreprocessConfig()
+    tr, val = data.frames(prep)
+    val = {k: v[:val_frames] for k, v in val.items() if k != "labels"}
+    info = {"source": "bag", "path": str(bag), "topic": topic, "instances": instances,
+            "train_frames": len(tr["x"]), "val_frames": len(val["x"]),
+            "camera": asdict(camera_from_bag(bag, topic)[0]), "view": bag_view(tr)}
+    return tr, val, prep, info
 
 
 def unpack(path: Path) -> tuple[dict, dict, dict, dict]:
@@ -143,7 +173,10 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     sub = ap.add_subparsers(required=True)
     p = sub.add_parser("pack")
-    p.add_argument("--data", type=Path, required=True)
+    p.add_argument("--data", type=Path, help="a simulated data set")
+    p.add_argument("--bag", type=Path, help="or a recording (depth and CameraInfo)")
+    p.add_argument("--instances", type=int, help="with --bag: the parts in the bin")
+    p.add_argument("--topic", help="with --bag: the depth topic (default: the only one)")
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--train-frames", type=int)
     p.add_argument("--with-labels", action="store_true", help="also the training labels")
