@@ -41,8 +41,10 @@ def pack(args) -> int:
     if (args.data is None) == (args.bag is None):
         raise SystemExit("pack: give --data (a simulated data set) or --bag (a recording)")
     if args.bag is not None:
-        if args.instances is None or args.with_labels:
-            raise SystemExit("pack --bag: needs --instances N; the frames have no labels to pack")
+        if args.instances is None or args.with_labels or args.train_frames is not None:
+            raise SystemExit("pack --bag: needs --instances N, and takes every frame before the "
+                             "held-out fifth (no --train-frames); the frames have no labels to "
+                             "pack (no --with-labels)")
         tr, val, prep, info = recording(args.bag, args.instances, args.topic)
     else:
         from inseggan_ros.data import load_sim_training
@@ -77,7 +79,8 @@ def recording(bag: Path, instances: int, topic: str | None, val_frames: int = 10
 
     data, prep = BagFrames(bag, instances, topic), PreprocessConfig()
     tr, val = data.frames(prep)
-    val = {k: v[:val_frames] for k, v in val.items() if k != "labels"}
+    val = {k: (v[:val_frames] if isinstance(v, np.ndarray) else v) for k, v in val.items()
+           if k != "labels"}
     info = {"source": "bag", "path": str(bag), "topic": topic, "instances": instances,
             "train_frames": len(tr["x"]), "val_frames": len(val["x"]),
             "camera": asdict(camera_from_bag(bag, topic)[0]), "view": bag_view(tr)}
@@ -178,7 +181,7 @@ def main(argv=None) -> int:
     p.add_argument("--instances", type=int, help="with --bag: the parts in the bin")
     p.add_argument("--topic", help="with --bag: the depth topic (default: the only one)")
     p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--train-frames", type=int)
+    p.add_argument("--train-frames", type=int, help="with --data: the first N training frames")
     p.add_argument("--with-labels", action="store_true", help="also the training labels")
     p.set_defaults(func=pack)
     p = sub.add_parser("train")

@@ -33,7 +33,8 @@ def test_a_recording_packs_as_the_loop_reads_it(tmp_path):
     ([], "give --data"),
     (["--bag", "b", "--data", "d"], "give --data"),
     (["--bag", "b"], "needs --instances"),
-    (["--bag", "b", "--instances", "5", "--with-labels"], "no labels to pack")])
+    (["--bag", "b", "--instances", "5", "--with-labels"], "no labels to pack"),
+    (["--bag", "b", "--instances", "5", "--train-frames", "9"], "no --train-frames")])
 def test_pack_says_what_it_needs(tmp_path, argv, message):
     with pytest.raises(SystemExit, match=message):
         device_train.main(["pack", *argv, "--out", str(tmp_path / "x.npz")])
