@@ -32,12 +32,11 @@ def _check_labels(name: str, a: np.ndarray) -> np.ndarray:
     return a
 
 
-def miou(pred: np.ndarray, gt: np.ndarray) -> float:
-    """The paper's mIoU of one (H, W) predicted label image against the ground truth.
-
-    Both are integer label images, 0 = background, 1..k = instances. Returns a float in [0, 1],
-    or NaN when `gt` has no instance.
-    """
+def instance_ious(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """Each ground-truth instance's best IoU over the predicted instances (0 when none overlaps
+    it), in the order of the ground-truth ids: a float64 array, empty when `gt` has no instance.
+    Both are (H, W) integer label images, 0 = background; the prediction is restricted to the
+    ground-truth foreground, as the paper's mIoU (`miou`, their mean) scores it."""
     pred = _check_labels("pred", pred)
     gt = _check_labels("gt", gt)
     if pred.shape != gt.shape:
@@ -48,18 +47,28 @@ def miou(pred: np.ndarray, gt: np.ndarray) -> float:
     g_ids, g_idx = np.unique(gt, return_inverse=True)
     p_ids, p_idx = np.unique(pred, return_inverse=True)
     if not (g_ids > 0).any():
-        return float("nan")
+        return np.zeros(0)
     kg, kp = len(g_ids), len(p_ids)
     conf = np.bincount(g_idx.ravel() * kp + p_idx.ravel(), minlength=kg * kp).reshape(kg, kp)
 
     inter = conf[g_ids > 0][:, p_ids > 0]  # (GT instances, predicted instances) overlaps
     if inter.shape[1] == 0:  # nothing predicted on the GT foreground
-        return 0.0
+        return np.zeros(int((g_ids > 0).sum()))
     g_area = conf[g_ids > 0].sum(axis=1)
     p_area = conf[:, p_ids > 0].sum(axis=0)
     union = g_area[:, None] + p_area[None, :] - inter
-    iou = inter / union  # union >= |g| >= 1, never zero
-    return float(iou.max(axis=1).mean())
+    return (inter / union).max(axis=1)  # union >= |g| >= 1, never zero
+
+
+def miou(pred: np.ndarray, gt: np.ndarray) -> float:
+    """The paper's mIoU of one (H, W) predicted label image against the ground truth: the mean
+    of `instance_ious`.
+
+    Both are integer label images, 0 = background, 1..k = instances. Returns a float in [0, 1],
+    or NaN when `gt` has no instance.
+    """
+    ious = instance_ious(pred, gt)
+    return float(ious.mean()) if ious.size else float("nan")
 
 
 def miou_batch(preds: Sequence[np.ndarray] | np.ndarray,

@@ -17,20 +17,7 @@ import sys
 import numpy as np
 import torch
 
-
-def instance_ious(pred: np.ndarray, gt: np.ndarray) -> np.ndarray:
-    pred = np.where(gt > 0, pred, 0)
-    out = []
-    for g in np.unique(gt[gt > 0]):
-        gm = gt == g
-        best = 0.0
-        for p in np.unique(pred[gm]):
-            if p == 0:
-                continue
-            pm = pred == p
-            best = max(best, (gm & pm).sum() / (gm | pm).sum())
-        out.append(best)
-    return np.array(out)
+from inseggan_ros.metrics import instance_ious
 
 
 def gross_kind(pred: np.ndarray, gt: np.ndarray, g: int) -> str:
@@ -55,13 +42,13 @@ def report(name: str, labels: np.ndarray, gt: np.ndarray) -> None:
     kinds = {}
     total = 0
     for p, g in zip(labels, gt):
-        for gi, iou in zip(np.unique(g[g > 0]), instance_ious(p, g)):
+        ious = instance_ious(p, g)  # in the order of np.unique(g[g > 0])
+        if ious.size == 0:
+            continue
+        for gi, iou in zip(np.unique(g[g > 0]), ious):
             if iou < 0.5:
                 k = gross_kind(p, g, gi)
                 kinds[k] = kinds.get(k, 0) + 1
-        ious = instance_ious(p, g)
-        if ious.size == 0:
-            continue
         total += ious.size
         per_frame.append(ious.mean())
         bad = ious < 0.5
