@@ -64,6 +64,7 @@ from tqdm import tqdm
 from .evaluate import write_json
 
 if TYPE_CHECKING:
+    from .preprocess import PreprocessConfig
     from .sim.scene import SceneConfig
 
 
@@ -222,6 +223,27 @@ def _as_list(v):
     return [round(float(e), 6) for e in v] if isinstance(v, (list, tuple)) else v
 
 
+def bag_shape_frames(data: BagFrames, val_frames: int = 100
+                     ) -> tuple[dict, dict, PreprocessConfig, dict]:
+    """A recording's frames as the shape is learned from them, the bin found in every frame as
+    `inseggan train --bag` finds it -> (training frames: all before the held-out cut; the first
+    `val_frames` held-out ones, validated on without labels; the preprocessing; the data record
+    the checkpoint keeps, with the camera that sizes the template in metres)."""
+    from .data import bag_view
+    from .preprocess import PreprocessConfig
+    from .sim.user_camera import camera_from_bag
+
+    prep = PreprocessConfig()
+    frames, val = data.frames(prep)
+    val = {k: (v[:val_frames] if isinstance(v, np.ndarray) else v) for k, v in val.items()
+           if k != "labels"}  # the labels topic is the card's only: validation without
+    info = {"source": "bag", "path": str(data.path), "topic": data.topic,
+            "train_frames": len(frames["x"]), "val_frames": len(val["x"]),
+            "camera": asdict(camera_from_bag(data.path, data.topic)[0]),
+            "view": bag_view(frames)}
+    return frames, val, prep, info
+
+
 def learn_shape(data, out, train_cfg, progress: bool = True, val_frames: int = 100) -> Path:
     """Stage 0: learn the part's shape from the user's unlabelled training frames with
     `train_cfg` (a `train.TrainConfig`; its instance count is the data set's) -> out/best.pt.
@@ -234,19 +256,9 @@ def learn_shape(data, out, train_cfg, progress: bool = True, val_frames: int = 1
     out = Path(out)
     if (out / "summary.json").is_file() and (out / "best.pt").is_file():
         return out / "best.pt"
-    if isinstance(data, BagFrames):  # the bin found in every frame, as `inseggan train --bag`
-        from .data import bag_view
-        from .preprocess import PreprocessConfig
-        from .sim.user_camera import camera_from_bag
-
-        n, prep = data.instances, PreprocessConfig()
-        frames, val = data.frames(prep)
-        val = {k: (v[:val_frames] if isinstance(v, np.ndarray) else v) for k, v in val.items()
-               if k != "labels"}  # the labels topic is the card's only: validation without
-        info = {"source": "bag", "path": str(data.path), "topic": data.topic,
-                "train_frames": len(frames["x"]), "val_frames": len(val["x"]),
-                "camera": asdict(camera_from_bag(data.path, data.topic)[0]),
-                "view": bag_view(frames)}  # with the camera: the template's size in metres
+    if isinstance(data, BagFrames):
+        n = data.instances
+        frames, val, prep, info = bag_shape_frames(data, val_frames)
     else:
         frames, val, prep, info = load_sim_training(data, val_frames=val_frames,
                                                     progress=progress)

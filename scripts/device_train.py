@@ -66,25 +66,14 @@ def pack(args) -> int:
     return 0
 
 
-def recording(bag: Path, instances: int, topic: str | None, val_frames: int = 100):
+def recording(bag: Path, instances: int, topic: str | None):
     """A recording's frames as `inseggan loop --bag` learns the shape from them
-    (`loop.learn_shape`): all but the held-out last fifth to train on, the first `val_frames`
-    of those held out to validate on by reconstruction (no labels read)."""
-    from dataclasses import asdict
+    (`loop.bag_shape_frames`; no labels read), its data record saying how many parts a bin
+    holds, as a data set's does."""
+    from inseggan_ros.loop import BagFrames, bag_shape_frames
 
-    from inseggan_ros.data import bag_view
-    from inseggan_ros.loop import BagFrames
-    from inseggan_ros.preprocess import PreprocessConfig
-    from inseggan_ros.sim.user_camera import camera_from_bag
-
-    data, prep = BagFrames(bag, instances, topic), PreprocessConfig()
-    tr, val = data.frames(prep)
-    val = {k: (v[:val_frames] if isinstance(v, np.ndarray) else v) for k, v in val.items()
-           if k != "labels"}
-    info = {"source": "bag", "path": str(bag), "topic": topic, "instances": instances,
-            "train_frames": len(tr["x"]), "val_frames": len(val["x"]),
-            "camera": asdict(camera_from_bag(bag, topic)[0]), "view": bag_view(tr)}
-    return tr, val, prep, info
+    tr, val, prep, info = bag_shape_frames(BagFrames(bag, instances, topic))
+    return tr, val, prep, {**info, "instances": instances}
 
 
 def unpack(path: Path) -> tuple[dict, dict, dict, dict]:
