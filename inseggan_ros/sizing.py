@@ -111,6 +111,49 @@ def scaled(G, s: float):
     return G
 
 
+def _logit(p: torch.Tensor) -> torch.Tensor:
+    p = p.clamp(1e-4, 1 - 1e-4)
+    return torch.log(p) - torch.log1p(-p)
+
+
+def reshaped(G, length: float = 1.0, radius: float = 1.0, spheres: int | None = None):
+    """A copy of the rod generator `G` whose centres span `length` times as much and whose
+    spheres are `radius` times as large (the axis lifted alike), resampled to `spheres` spheres
+    (default: as many as it has) along the same profile: the radii interpolated linearly between
+    the old centres. A rod's centres can span at most 0.95 (K - 1) times its smallest radius
+    (`SphereGenerator.spheres`), so a rod made longer and thinner needs more spheres; the span
+    the copy gets is returned with it. -> (copy, span in template units)."""
+    from dataclasses import replace
+
+    G = _rod(G)
+    K = int(spheres or G.cfg.spheres)
+    if K < 2 and length != 1.0:
+        raise ValueError(f"spheres {K} invalid for a change of length; valid: >= 2")
+    if length <= 0 or radius <= 0:
+        raise ValueError(f"length {length}, radius {radius} invalid; valid: > 0")
+    with torch.no_grad():
+        centres, radii = (t.double() for t in G.spheres())
+        t_old = np.linspace(-0.5, 0.5, len(radii)) if len(radii) > 1 else np.zeros(1)
+        t_new = np.linspace(-0.5, 0.5, K) if K > 1 else np.zeros(1)
+        r = torch.from_numpy(np.interp(t_new, t_old, radii.numpy())) * radius
+        span = float(centres[:, 0].max() - centres[:, 0].min()) * length
+        new = SphereGenerator(replace(G.cfg, spheres=K)).to(G.log_radius.device)
+        state = {k: v for k, v in G.state_dict().items() if k != "radius_shape"}
+        if G.cfg.radius_profile == "monotone":  # r_j = r_0 prod(0.75 + 0.25 sigmoid(shape_j))
+            steps = (r[1:] / r[:-1]).clamp(0.75, 1.0)
+            shape = torch.cat([torch.full((1,), 4.0, dtype=r.dtype), _logit((steps - 0.75) / 0.25)])
+            log_r = math.log(float(r[0]))
+        else:  # r_j = r_max (0.5 + 0.5 sigmoid(shape_j))
+            shape = _logit(2 * r / r.max() - 1)
+            log_r = math.log(float(r.max()))
+        dtype = G.log_radius.dtype
+        state.update(radius_shape=shape.to(dtype), log_radius=torch.tensor(log_r, dtype=dtype),
+                     length=torch.tensor(span, dtype=dtype), lift=G.lift.detach() * radius)
+        new.load_state_dict(state)
+        got = new.spheres()[0][:, 0]
+    return new, float(got.max() - got.min())
+
+
 def scale_state(state: dict, s: float) -> None:
     """The rod of checkpoint `state` made `s` times as large, in place (as `scaled`)."""
     g = state["generator"]

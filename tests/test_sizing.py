@@ -59,6 +59,34 @@ def test_a_rod_resized_to_a_thickness_rests_on_the_floor_at_that_height():
         sizing.scaled(checkpoint.build_models(convex)[1], 1.1)
 
 
+def test_a_rod_made_longer_and_thinner_keeps_its_profile_on_more_spheres():
+    G = checkpoint.build_models(checkpoint.load(resolve_model("bolt")), "bolt")[1]  # 12 spheres
+    with torch.no_grad():
+        centres, radii = G.spheres()
+        span = float(centres[-1, 0] - centres[0, 0])
+        same, got = sizing.reshaped(G, 1.0, 1.0, G.cfg.spheres)  # the same rod, rebuilt
+        assert torch.allclose(same.spheres()[1], radii, rtol=1e-4)
+        assert got == pytest.approx(span, rel=1e-4)
+        pose = torch.tensor([[[0.3, -0.2, 0.5, 0.1, -0.1, 0.3]]])  # axis-angle, translation
+        assert torch.allclose(same.render_poses(pose), G.render_poses(pose), atol=1e-4)
+        # twice the span at 0.6 of the radii, on 24 spheres: the clamp on the span (the
+        # spheres must overlap) does not bind, and the radii fall along the rod as they did
+        thin, got = sizing.reshaped(G, 2.0, 0.6, 24)
+        c2, r2 = thin.spheres()
+        assert len(r2) == 24 and thin.cfg.spheres == 24
+        assert got == pytest.approx(2 * span, rel=1e-4)
+        assert float(c2[-1, 0] - c2[0, 0]) == pytest.approx(2 * span, rel=1e-4)
+        assert float(r2[0]) == pytest.approx(0.6 * float(radii[0]), rel=1e-3)
+        assert float(r2[-1]) == pytest.approx(0.6 * float(radii[-1]), rel=1e-3)
+        assert float(thin.lift) == pytest.approx(0.6 * float(G.lift), rel=1e-4)
+        # on the bolt's own 12 spheres the same request is held short: they must overlap
+        short, got = sizing.reshaped(G, 2.0, 0.6, 12)
+        assert got < 2 * span
+        assert got <= 0.95 * 11 * float(short.spheres()[1].min()) * (1 + 1e-5)
+    with pytest.raises(ValueError, match="invalid; valid: > 0"):
+        sizing.reshaped(G, 0.0, 1.0)
+
+
 def test_the_scale_that_explains_the_frames_best_undoes_a_shrunk_template(cylinders):
     """The shipped cylinder model keeps its own size; with its rod shrunk to 0.75 of it, the
     frames choose a larger scale. No label is read."""

@@ -3,6 +3,8 @@ against the labelled mIoU of fresh frames, scale by scale.
 
     python scripts/experiments/template_scale.py MODEL RECORDING_BAG TEST_BAG \
         [--scales 0.9,1,1.1,1.2,1.3] [--out runs/scale.json]
+    python scripts/experiments/template_scale.py MODEL RECORDING_BAG TEST_BAG \
+        --lengths 1,1.5,2 --radii 0.6,0.8,1 --spheres 16   # the rod made longer and thinner
     python scripts/experiments/template_scale.py MODEL DATA_SET DATA_SET ...   # simulated
 
 A simulated data set (`inseggan simulate`) stands for both: its training split (labels unread)
@@ -32,6 +34,9 @@ def main(argv=None) -> int:
     ap.add_argument("recording")
     ap.add_argument("test_bag")
     ap.add_argument("--scales", default="0.9,1,1.1,1.2,1.3")
+    ap.add_argument("--lengths", help="centre-span factors (with --radii: every pair)")
+    ap.add_argument("--radii", help="radius factors")
+    ap.add_argument("--spheres", type=int, help="resample the rod to this many spheres")
     ap.add_argument("--calibration-frames", type=int, default=200)
     ap.add_argument("--held-out-frames", type=int, default=80)
     ap.add_argument("--out")
@@ -41,7 +46,7 @@ def main(argv=None) -> int:
     from inseggan_ros import evaluate, selfcheck
     from inseggan_ros.metrics import mean_miou, miou_batch
     from inseggan_ros.segment import Segmenter
-    from inseggan_ros.sizing import scaled
+    from inseggan_ros.sizing import reshaped
 
     seg = Segmenter.from_checkpoint(args.model, device="cpu")
     G0, n = seg.G, seg.model_cfg.n_instances
@@ -67,20 +72,27 @@ def main(argv=None) -> int:
         print(f"  {name}: all {mean_miou(r['scores']):.3f} / "
               + " / ".join(f"{k} {mean_miou(r['scores'][m]):.3f}" for k, m in subsets.items()))
     rows = []
-    for s in (float(v) for v in args.scales.split(",")):
-        seg.G = scaled(G0, s)
+    if args.lengths or args.radii:
+        pairs = [(float(a), float(b)) for a in (args.lengths or "1").split(",")
+                 for b in (args.radii or "1").split(",")]
+    else:
+        pairs = [(float(v), float(v)) for v in args.scales.split(",")]
+    for length, radius in pairs:
+        seg.G, span = reshaped(G0, length, radius, args.spheres)
+        s = f"{length:.2f} x {radius:.2f} (span {span:.3f})"
         seg.tau, _ = selfcheck.calibrate(seg, calib["x"], calib["fg"])
         m = selfcheck.measure(seg, held["x"], held["fg"])
         outs = [seg.segment_batch(test["x"][i:i + 50], test["fg"][i:i + 50])
                 for i in range(0, len(test["x"]), 50)]
         scores = miou_batch(np.concatenate([o["labels"].cpu().numpy() for o in outs]),
                             test["labels"])
-        row = {"scale": s, "tau": seg.tau, "recon_l1": m["recon_l1"],
+        row = {"length": length, "radius": radius, "span": span, "tau": seg.tau,
+               "recon_l1": m["recon_l1"],
                "coverage": m["coverage"], "spill": m["spill"],
                "count_equals_n": m["count_equals_n"], "miou_all": float(mean_miou(scores)),
                **{f"miou_{k}": float(mean_miou(scores[mk])) for k, mk in subsets.items()}}
         rows.append(row)
-        print(f"scale {s:.2f}: tau {row['tau']:.2f}; held-out L1 {row['recon_l1']:.3f}, "
+        print(f"length x radius {s}: tau {row['tau']:.2f}; held-out L1 {row['recon_l1']:.3f}, "
               f"coverage {row['coverage']:.3f}, spill {row['spill']:.3f}, count = n "
               f"{row['count_equals_n']:.2f}; test mIoU {row['miou_all']:.3f} / "
               + " / ".join(f"{row[f'miou_{k}']:.3f}" for k in subsets), flush=True)
