@@ -399,7 +399,8 @@ def cmd_loop(args) -> int:
                      user_weight=args.user_weight, head_iterations=args.head_iterations,
                      self_frames=args.self_frames, self_iterations=args.self_iterations,
                      self_settings=args.self_settings, export_settings=args.export_settings,
-                     size_by_thickness=args.size_by_thickness, size_rounds=args.size_rounds)
+                     size_by_thickness=args.size_by_thickness, size_rounds=args.size_rounds,
+                     size_keep_length=args.size_keep_length)
     train_cfg = None
     if args.model is None:
         from .train import get_config
@@ -970,6 +971,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "a rod the loop learns itself (no --model) that came out elongated; "
                         "on (the option alone): any rod; off (measured: docs/experiments.md, "
                         "2026-11-27)")
+    p.add_argument("--size-keep-length", action="store_true",
+                   help="the thickness rule thins the rod's spheres and keeps its length (more "
+                        "spheres where they need them to overlap): for a long, thin part whose "
+                        "rod came out thick, such as a bolt (docs/experiments.md, 2026-11-28)")
     p.add_argument("--size-rounds", type=int, default=None,
                    help="after the encoder, up to N rounds of: the rod's scale chosen by how "
                         "well it explains the user's frames, and where it is not 1, the "

@@ -99,6 +99,9 @@ class LoopConfig:
     # the thickness the user's frames show (`sizing.frame_thickness`); "auto": so only when the
     # loop learns the rod itself and it came out elongated (`sizing.ELONGATED`: a part lying on
     # its side, whose thickness is its width; a flat part's is not); "off"
+    size_keep_length: bool = False  # the thickness rule scales the rod's radii only and keeps
+    # its centres' span (`sizing.size_to_thickness`): for a long, thin part whose rod came out
+    # thick (measured on tilted bolts: docs/experiments.md, 2026-11-28, afternoon)
     size_rounds: int | None = None  # after the encoder, up to this many rounds of: the rod's
     # scale chosen by how well it explains the user's frames (`sizing.choose_scale`), and where
     # it is not 1, the simulation and the encoder again at that scale (0 = none; None:
@@ -116,6 +119,9 @@ class LoopConfig:
         if self.size_by_thickness not in ("auto", "on", "off"):
             raise ValueError(f"size_by_thickness {self.size_by_thickness!r} invalid; valid: "
                              "auto, on, off")
+        if self.size_keep_length and self.size_by_thickness == "off":
+            raise ValueError("size_keep_length without the thickness rule does nothing; valid: "
+                             "size_by_thickness auto or on with it")
         if self.size_rounds is not None and self.size_rounds < 0:
             raise ValueError(f"size_rounds {self.size_rounds!r} invalid; valid: >= 0 (0 = the "
                              "template's size as learned)")
@@ -495,14 +501,16 @@ def size_stage(file: Path, data, out: Path, cfg: LoopConfig, only_elongated: boo
     if len(frames["x"]) == 0 and not isinstance(data, BagFrames):  # a data set of no training
         frames = _user_frames(data, prep, "val", cfg.size_frames)  # split: its validation one
     thickness = sizing.frame_thickness(frames["x"], frames["fg"], prep.max_height)
-    s = sizing.size_to_thickness(state, G, float(metres[2]), thickness)
+    s = sizing.size_to_thickness(state, G, float(metres[2]), thickness, cfg.size_keep_length)
     G = checkpoint.build_models(state, file)[1]
     after = sizing.rod_dimensions_mm(G, template_scale(state, G, camera))
     out.mkdir(parents=True, exist_ok=True)
     checkpoint.save(out / "model.pt", state)
     write_json(out / "size.json", {
         "model": str(file), "frames": int(len(frames["x"])), "thickness_mm": thickness * 1000,
-        "scale": s, "dimensions_mm_before": before, "dimensions_mm_after": after})
+        "scale": s, "keep_length": cfg.size_keep_length,
+        "spheres": int(state["model_config"]["spheres"]),
+        "dimensions_mm_before": before, "dimensions_mm_after": after})
     return out / "model.pt"
 
 

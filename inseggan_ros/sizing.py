@@ -38,6 +38,10 @@ PEAK_WINDOW = 7  # pixels: a local maximum is the highest point of its 7 x 7 win
 # side, whose thickness is its width (what `size_to_thickness` assumes); a shorter one (a hex
 # nut's learned rod is about as long as wide) is not resized to the thickness by default
 ELONGATED = 1.2
+# a rod thinned with its length kept (`size_to_thickness(keep_length=True)`) gets spheres at
+# most this many of its smallest radii apart: their tops dip by at most 6 % between two
+# spheres (at 0.95, the most that keeps them overlapping, by 12 %)
+KEEP_LENGTH_SPACING = 0.7
 
 
 def _rod(G) -> SphereGenerator:
@@ -69,16 +73,32 @@ def frame_thickness(x: np.ndarray, fg: np.ndarray, max_height: float) -> float:
     return float(np.median(mm[np.abs(mm - first) <= 2])) / 1000
 
 
-def size_to_thickness(state: dict, G, metres_per_height_unit: float, thickness: float) -> float:
+def size_to_thickness(state: dict, G, metres_per_height_unit: float, thickness: float,
+                      keep_length: bool = False) -> float:
     """Resize the rod of checkpoint `state` (in place; `G` is its generator) so that its thickest
     sphere, resting on the floor, is `thickness` metres high: every sphere and the centres'
-    span scaled alike, the axis lifted to that sphere's radius. -> the scale applied."""
+    span scaled alike, the axis lifted to that sphere's radius. With `keep_length` only the
+    radii are scaled and the centres keep their span (a thick rod learned for a long, thin part:
+    a bolt), on more spheres where they would be more than KEEP_LENGTH_SPACING of the smallest
+    radius apart (`reshaped`). -> the scale applied to the radii."""
     _rod(G)
     with torch.no_grad():
-        r_max = float(G.spheres()[1].max())
+        centres, radii = G.spheres()
+        r_max, r_min = float(radii.max()), float(radii.min())
+        span = float(centres[:, 0].max() - centres[:, 0].min())
     r_new = thickness / 2 / metres_per_height_unit
     s = r_new / r_max
-    scale_state(state, s)
+    if keep_length:
+        spheres = max(G.cfg.spheres, math.ceil(span / (KEEP_LENGTH_SPACING * r_min * s)) + 1)
+        if spheres > 256:
+            raise ValueError(f"a rod {span / (r_min * s):.0f} times as long as its thinnest "
+                             "sphere's radius needs more than 256 spheres; valid: keep_length "
+                             "off for so thin a part")
+        H, _ = reshaped(G, 1.0, s, spheres)
+        state["generator"] = {k: v.detach().clone() for k, v in H.state_dict().items()}
+        state["model_config"] = {**state["model_config"], "spheres": spheres}
+    else:
+        scale_state(state, s)
     g = state["generator"]
     g["lift"] = torch.as_tensor(r_new, dtype=g["lift"].dtype)  # resting on the floor
     return s

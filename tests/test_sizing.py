@@ -54,6 +54,24 @@ def test_a_rod_resized_to_a_thickness_rests_on_the_floor_at_that_height():
     assert after[2] == pytest.approx(before[2] * s, rel=1e-4)
     with torch.no_grad():  # the axis at that sphere's radius: it touches the floor
         assert float(G2.lift) == pytest.approx(float(G2.spheres()[1].max()), rel=1e-4)
+    # the radii alone, the centres' span kept: a bolt's rod that came out thick
+    state = checkpoint.load(CYLINDER)
+    with torch.no_grad():
+        centres = G.spheres()[0]
+    span = float(centres[-1, 0] - centres[0, 0])
+    s_thin = sizing.size_to_thickness(state, G, float(metres[2]), 0.010, keep_length=True)
+    G3 = checkpoint.build_models(state, CYLINDER)[1]
+    thin = sizing.rod_dimensions_mm(G3, metres)
+    assert thin[2] == pytest.approx(10.0, rel=1e-4)
+    assert s_thin == pytest.approx(10.0 / before[2], rel=1e-4)
+    with torch.no_grad():
+        c3, r3 = G3.spheres()
+        assert float(c3[-1, 0] - c3[0, 0]) == pytest.approx(span, rel=1e-4)  # not clamped
+        assert float(G3.lift) == pytest.approx(float(r3.max()), rel=1e-4)
+    assert state["model_config"]["spheres"] == G3.cfg.spheres >= G.cfg.spheres
+    assert thin[0] > after[0] * 10.0 / 20.0  # longer than the rod scaled alike would be
+    with pytest.raises(ValueError, match="does nothing"):
+        LoopConfig(size_by_thickness="off", size_keep_length=True)
     convex = checkpoint.load(resolve_model("wooden_block"))
     with pytest.raises(ValueError, match="only a rod of spheres"):
         sizing.scaled(checkpoint.build_models(convex)[1], 1.1)
