@@ -427,7 +427,8 @@ def size_plan(cfg: LoopConfig, learns: bool, renderer: str) -> tuple[str, int]:
     the loop learns the template itself (`learns`) and its renderer. By default ("auto", None) a
     rod the loop learns itself is sized, to the thickness only if it is elongated, and gets
     AUTO_SIZE_ROUNDS rounds; a given model is left as it is. Asking for either on a template
-    that is not a rod raises, before any stage spends its time."""
+    that is not a rod, or for `size_keep_length` where the thickness rule is off, raises,
+    before any stage spends its time."""
     rod = renderer == "spheres"
     if not rod and (cfg.size_by_thickness == "on" or cfg.size_rounds):
         raise ValueError(f"--size-by-thickness / --size-rounds size a rod of spheres; the "
@@ -437,6 +438,11 @@ def size_plan(cfg: LoopConfig, learns: bool, renderer: str) -> tuple[str, int]:
     thickness = cfg.size_by_thickness
     if thickness == "auto":
         thickness = "if_elongated" if auto else "off"
+    if cfg.size_keep_length and thickness == "off":
+        raise ValueError("--size-keep-length changes the thickness rule, which is off here "
+                         "(--size-by-thickness auto sizes only a rod the loop learns itself, "
+                         "not a given --model or a template that is not a rod); valid: "
+                         "--size-by-thickness on with it for a rod, or leave it out")
     rounds = cfg.size_rounds
     if rounds is None:
         rounds = AUTO_SIZE_ROUNDS if auto else 0

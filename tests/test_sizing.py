@@ -187,6 +187,13 @@ def test_by_default_only_a_rod_the_loop_learns_is_sized_and_a_flat_parts_is_left
                      "spheres") == ("off", 0)
     with pytest.raises(ValueError, match="size a rod of spheres"):
         size_plan(LoopConfig(size_rounds=1), True, "convex")
+    keep = LoopConfig(size_keep_length=True)  # the rule it changes must be on
+    assert size_plan(keep, True, "spheres") == ("if_elongated", AUTO_SIZE_ROUNDS)
+    assert size_plan(LoopConfig(size_by_thickness="on", size_keep_length=True), False,
+                     "spheres") == ("on", 0)
+    for learns, renderer in ((False, "spheres"), (True, "convex")):
+        with pytest.raises(ValueError, match="--size-keep-length changes the thickness rule"):
+            size_plan(keep, learns, renderer)
     with pytest.raises(ValueError, match="size_by_thickness 'yes' invalid"):
         LoopConfig(size_by_thickness="yes")
 
