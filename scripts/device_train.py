@@ -124,6 +124,10 @@ def distill(args) -> int:
     tr, val, _, _ = unpack(args.packed)
     if tr["labels"] is None:
         raise SystemExit(f"{args.packed}: no training labels (pack it with --with-labels)")
+    if args.frames is not None:  # the first N piles only
+        if not 1 <= args.frames <= len(tr["x"]):
+            raise SystemExit(f"--frames {args.frames} invalid; valid: 1..{len(tr['x'])}")
+        tr = {**tr, "x": tr["x"][:args.frames], "labels": tr["labels"][:args.frames]}
     iterations = args.iterations
     if args.minutes:  # as many iterations as fit: timed on a short probe run first
         probe = DistillConfig(frames=len(tr["x"]), iterations=100, lambda_pose=0.0,
@@ -194,6 +198,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--iterations", type=int, default=3000)
     p.add_argument("--minutes", type=float, help="instead of --iterations: what fits in this")
+    p.add_argument("--frames", type=int, help="the first N packed piles (default: all)")
     p.add_argument("--batch-size", type=int, default=32)
     p.add_argument("--lr", type=float, default=3e-4)
     p.add_argument("--ownership-weight", type=float, default=0.2)
