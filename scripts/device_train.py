@@ -50,9 +50,17 @@ def pack(args) -> int:
         from inseggan_ros.data import load_sim_training
 
         tr, val, prep, info = load_sim_training(args.data, args.train_frames, progress=True)
-    tmp = args.out.with_suffix(".tmp.npz")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    extra = {"train_labels": tr["labels"]} if args.with_labels else {}
+    write_packed(args.out, tr, val, prep, info, with_labels=args.with_labels)
+    return 0
+
+
+def write_packed(out: Path, tr: dict, val: dict, prep, info: dict,
+                 with_labels: bool = False) -> None:
+    """Training frames `tr` (with their labels if `with_labels`) and validation frames `val` as
+    one compressed file that `unpack` reads back, written atomically; frames in float16."""
+    tmp = out.with_suffix(".tmp.npz")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    extra = {"train_labels": tr["labels"]} if with_labels else {}
     if val.get("labels") is not None:
         extra["val_labels"] = val["labels"]
     np.savez_compressed(
@@ -60,10 +68,9 @@ def pack(args) -> int:
         val_fg=val["fg"], val_roi=val["roi"],
         val_floor_depth=val["floor_depth"],
         meta=np.frombuffer(json.dumps({"prep": prep.to_dict(), "info": info}).encode(), np.uint8))
-    tmp.replace(args.out)
-    print(f"{args.out}: {len(tr['x'])} training and {len(val['x'])} validation frames, "
-          f"{args.out.stat().st_size / 2**20:.1f} MiB")
-    return 0
+    tmp.replace(out)
+    print(f"{out}: {len(tr['x'])} training and {len(val['x'])} validation frames, "
+          f"{out.stat().st_size / 2**20:.1f} MiB")
 
 
 def recording(bag: Path, instances: int, topic: str | None):

@@ -16,14 +16,15 @@ model's piles (the model's preprocessing, bin and floor found in every frame), w
         runs/x/packed.npz runs/x/loop/size_round2/sim runs/x/more
 """
 import argparse
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from device_train import write_packed  # noqa: E402
 from inseggan_ros import checkpoint, data  # noqa: E402
 from inseggan_ros.preprocess import PreprocessConfig  # noqa: E402
 
@@ -48,17 +49,8 @@ def pack(args) -> None:
     val = data.load_sim_split(args.piles[0], "val", prep, limit=100, as_given=True)
     info = {"source": "loop piles", "path": [str(p) for p in args.piles],
             "train_frames": int(sum(len(x) for x in xs)), "val_frames": len(val["x"])}
-    tmp = args.out.with_suffix(".tmp.npz")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(
-        tmp, train_x=np.concatenate(xs).astype(np.float16), train_labels=np.concatenate(labels),
-        val_x=val["x"].astype(np.float16), val_labels=val["labels"], val_fg=val["fg"],
-        val_roi=val["roi"], val_floor_depth=val["floor_depth"],
-        meta=np.frombuffer(json.dumps({"prep": prep.to_dict(), "info": info}).encode(),
-                           np.uint8))
-    tmp.replace(args.out)
-    print(f"{args.out}: {info['train_frames']} training and {info['val_frames']} validation "
-          f"frames, {args.out.stat().st_size / 2**20:.1f} MiB")
+    write_packed(args.out, {"x": np.concatenate(xs), "labels": np.concatenate(labels)}, val,
+                 prep, info, with_labels=True)
 
 
 def main() -> None:
