@@ -21,6 +21,7 @@ import numpy as np
 from . import settings
 from .bags import BagError
 from .checkpoint import CheckpointError
+from .vote_scale import SCALES as VOTE_SCALES
 
 
 def _fractions(text: str) -> tuple[float, float, float]:
@@ -32,6 +33,19 @@ def _fractions(text: str) -> tuple[float, float, float]:
     if len(parts) != 3:
         raise argparse.ArgumentTypeError(f"{text!r}: need three fractions train,val,test")
     return parts
+
+
+def _vote_scales(text: str) -> tuple[int, ...]:
+    if text.strip().lower() == "none":
+        return ()
+    try:
+        scales = tuple(int(x) for x in text.split(","))
+    except ValueError:
+        scales = ()
+    if not scales or min(scales) < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is not scales like 50,160,250 (integers "
+                                         ">= 1) or none")
+    return scales
 
 
 def _offset(text: str) -> tuple[float, float]:
@@ -400,7 +414,7 @@ def cmd_loop(args) -> int:
                      self_frames=args.self_frames, self_iterations=args.self_iterations,
                      self_settings=args.self_settings, export_settings=args.export_settings,
                      size_by_thickness=args.size_by_thickness, size_rounds=args.size_rounds,
-                     size_keep_length=args.size_keep_length)
+                     size_keep_length=args.size_keep_length, vote_scales=args.vote_scales)
     train_cfg = None
     if args.model is None:
         from .train import get_config
@@ -980,6 +994,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "well it explains the user's frames, and where it is not 1, the "
                         "simulation and the encoder again at that scale (default: 2 for a rod "
                         "the loop learns itself, 0 with --model)")
+    p.add_argument("--vote-scales", type=_vote_scales, default=VOTE_SCALES,
+                   help="at export, the superpixel vote's scale chosen among these on the "
+                        "simulated piles' validation split, whose labels are the loop's own "
+                        "(default: " + ",".join(map(str, VOTE_SCALES)) + "; none: the export "
+                        "settings' own scale; measured: docs/experiments.md, 2026-11-28, "
+                        "evening)")
     p.add_argument("--name", default="model", help="the exported model's name")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_loop)

@@ -43,10 +43,12 @@ resumes from its last checkpoint; the export writes its folder atomically):
   4. self (only with `self_frames`): the encoder fitted further to the model's own labels, at
      `self_settings`, of the user's training frames (`selffit.py`; no label read) ->
      out/self/last.pt;
-  5. export: out/model with the shipped settings (`export_settings`, realtime.yaml), tau and
-     the card from the user's validation and test frames as if they
-     had no labels (the test split's labels, where it has them, give the card's mIoU rows); for
-     a bag, its frames before and after the held-out cut (labels from `labels_topic` only).
+  5. export: out/model with the shipped settings (`export_settings`, realtime.yaml), the
+     superpixel vote's scale chosen on the last piles' validation split (`vote_scales`,
+     `vote_scale.py`: the piles' labels are the loop's own), tau and the card from the user's
+     validation and test frames as if they had no labels (the test split's labels, where it
+     has them, give the card's mIoU rows); for a bag, its frames before and after the
+     held-out cut (labels from `labels_topic` only).
 Writes out/summary.json with the time of each stage.
 """
 from __future__ import annotations
@@ -62,6 +64,7 @@ import numpy as np
 from tqdm import tqdm
 
 from .evaluate import write_json
+from .vote_scale import SCALES as VOTE_SCALES
 
 if TYPE_CHECKING:
     from .preprocess import PreprocessConfig
@@ -107,6 +110,9 @@ class LoopConfig:
     # it is not 1, the simulation and the encoder again at that scale (0 = none; None:
     # AUTO_SIZE_ROUNDS when the loop learns the rod itself, else 0)
     size_frames: int = 280  # of the user's frames for those two (not the card's)
+    vote_scales: tuple[int, ...] = VOTE_SCALES  # at export, the superpixel vote's scale
+    # chosen among these on the last simulated piles' validation split (`vote_scale.choose`;
+    # () = the export settings' own scale)
 
     def __post_init__(self):
         if self.self_frames < 0:
@@ -125,6 +131,9 @@ class LoopConfig:
         if self.size_rounds is not None and self.size_rounds < 0:
             raise ValueError(f"size_rounds {self.size_rounds!r} invalid; valid: >= 0 (0 = the "
                              "template's size as learned)")
+        if any(not isinstance(v, int) or v < 1 for v in self.vote_scales):
+            raise ValueError(f"vote_scales {self.vote_scales!r} invalid; valid: integers >= 1, "
+                             "or none (the export settings' own scale)")
         if self.size_frames < 20:
             raise ValueError(f"size_frames {self.size_frames!r} invalid; valid: >= 20")
         if self.head_iterations < 0:
@@ -328,16 +337,22 @@ def _shipped_segmenter(file: Path, cfg: LoopConfig):
     return seg
 
 
-def _export(finished: Path, data, cfg: LoopConfig, out: Path) -> dict:
+def _export(finished: Path, data, cfg: LoopConfig, out: Path, piles: dict | None = None
+            ) -> dict:
     """Stage 5: the model shipped with `cfg.export_settings` (a training checkpoint carries
-    only the bare defaults: no refinement, one starting point, no smoothing)."""
+    only the bare defaults: no refinement, one starting point, no smoothing); with labelled
+    `piles` (the last simulation's validation split), the vote's scale chosen on them among
+    `cfg.vote_scales`."""
     from .modelcard import export_from_bag, export_from_dataset
 
     inference = _shipped_segmenter(finished, cfg).inference
+    piles = piles if cfg.vote_scales else None
     if isinstance(data, BagFrames):
         return export_from_bag(finished, data.path, cfg.name, out, data.topic, data.labels_topic,
-                               data.held_out, inference=inference)
-    return export_from_dataset(finished, data, cfg.name, out, inference=inference)
+                               data.held_out, inference=inference, vote_piles=piles,
+                               vote_scales=cfg.vote_scales)
+    return export_from_dataset(finished, data, cfg.name, out, inference=inference,
+                               vote_piles=piles, vote_scales=cfg.vote_scales)
 
 
 def run_self_fit(model, data, out, cfg: LoopConfig, progress: bool = True) -> dict:
@@ -635,7 +650,12 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
         stages.update(1)
 
     t0 = time.monotonic()
-    card = _export(finished, data, cfg, out / "model")
+    piles = None  # the vote's scale is chosen on the last piles' validation split
+    if cfg.vote_scales:
+        from . import data as data_mod
+
+        piles = data_mod.load_sim_split(sim, "val", limit=100, **view)
+    card = _export(finished, data, cfg, out / "model", piles)
     seconds["export"] = round(time.monotonic() - t0, 1)
     stages.update(1)
     stages.close()
@@ -643,7 +663,8 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
     summary = {"model": str(model), "data": str(data) if bag is None else bag.describe(),
                "config": asdict(cfg),
                "seconds": seconds, "encoder": json.loads((encoder / "summary.json").read_text()),
-               "card": str(out / "model" / "card.json"), "tau": card.get("tau")}
+               "card": str(out / "model" / "card.json"), "tau": card.get("tau"),
+               "vote_scale": card.get("vote_scale")}
     summary["sizing"] = {"by_thickness": thickness, "rounds": size_rounds}
     if planned != thickness:
         summary["sizing"]["not_by_thickness"] = ("the folder's piles were made without the "

@@ -260,7 +260,8 @@ TRAINING_ONLY = ("discriminator", "optimizers", "rng", "format", "distill")
 
 
 def export_label_free(checkpoint_path, name: str, out_dir, calib: dict, held: dict,
-                      source: dict, inference=None) -> dict:
+                      source: dict, inference=None, vote_piles: dict | None = None,
+                      vote_scales=None) -> dict:
     """Ship a model from frames without ground truth (a recording of the user's own part):
     out_dir/model.pt (inference weights, float32, tau calibrated on `calib` without labels,
     the inference settings), card.json, README.md, qualitative.png.
@@ -269,12 +270,17 @@ def export_label_free(checkpoint_path, name: str, out_dir, calib: dict, held: di
     tau from `calib` (`selfcheck.calibrate`), the label-free measures on `held`
     (`selfcheck.measure`), and where `held` has labels, mIoU of InSeGAN, K-Means and
     Felzenszwalb on those frames too. `source` describes where the frames came from (for the
-    card). `inference`: the test-time settings to ship (default: the checkpoint's). Accepts a
-    training checkpoint or an exported model.pt."""
+    card). `inference`: the test-time settings to ship (default: the checkpoint's).
+    `vote_piles`: labelled frames ({x, fg, labels}: the loop's simulated piles) on which the
+    superpixel vote's scale is chosen once tau is known (`vote_scale.choose`, among
+    `vote_scales`, default `vote_scale.SCALES`). Accepts a training checkpoint or an exported
+    model.pt."""
+    from dataclasses import replace
+
     import torch
 
     from . import checkpoint as ckpt
-    from . import evaluate, selfcheck
+    from . import evaluate, selfcheck, vote_scale
     from .segment import Segmenter
 
     torch.set_num_threads(1)  # as the card says, and as the node runs by default
@@ -285,6 +291,11 @@ def export_label_free(checkpoint_path, name: str, out_dir, calib: dict, held: di
     seg.tau, tau_scores = selfcheck.calibrate(seg, calib["x"], calib["fg"])
     if state.get("label_head"):  # a label head was trained on the z-buffer labels of its tau
         seg.tau = float(state["label_head"]["tau"])
+    vote = None
+    if vote_piles is not None:  # the renders, hence tau, do not depend on the vote
+        vote = vote_scale.choose(seg, vote_piles, vote_scale.SCALES if vote_scales is None
+                                 else vote_scales)
+        seg.inference = replace(seg.inference, superpixel_scale=vote["scale"])
     out = selfcheck.segment_frames(seg, held["x"], held["fg"])
     measures = selfcheck.measure(seg, held["x"], held["fg"], out)
     labelled = None
@@ -315,7 +326,7 @@ def export_label_free(checkpoint_path, name: str, out_dir, calib: dict, held: di
         "smooth_iters": inf.smooth.iters, "keep": inf.refine_keep, "inference": inf.to_dict(),
         "encoder_precision": seg.resolve_precision(inf.encoder_precision),
         "precision": "float32",  # no labels to show that float16 weights change nothing
-        "measures": measures, "labelled": labelled,
+        "measures": measures, "labelled": labelled, "vote_scale": vote,
     }
 
     def write(tmp: Path) -> None:
@@ -330,7 +341,8 @@ def export_label_free(checkpoint_path, name: str, out_dir, calib: dict, held: di
 
 def export_from_bag(checkpoint_path, bag, name: str, out_dir, depth_topic: str | None = None,
                     labels_topic: str | None = None, held_out: float = 0.2,
-                    frames: int | None = 200, inference=None) -> dict:
+                    frames: int | None = 200, inference=None,
+                    vote_piles: dict | None = None, vote_scales=None) -> dict:
     """`export_label_free` on a bag: tau from its first frames, the measures on its last
     `held_out` fraction (at most `frames` of each, spread evenly); labels only from
     `labels_topic`, when named."""
@@ -352,11 +364,13 @@ def export_from_bag(checkpoint_path, bag, name: str, out_dir, depth_topic: str |
               "description": f"bag `{path}`",
               "held_out_rule": f"the last {100 * held_out:.0f} % of the bag's frames in time "
                                "order"}
-    return export_label_free(checkpoint_path, name, out_dir, calib, held, source, inference)
+    return export_label_free(checkpoint_path, name, out_dir, calib, held, source, inference,
+                             vote_piles, vote_scales)
 
 
 def export_from_dataset(checkpoint_path, data_root, name: str, out_dir,
-                        frames: int | None = 200, inference=None) -> dict:
+                        frames: int | None = 200, inference=None,
+                        vote_piles: dict | None = None, vote_scales=None) -> dict:
     """`export_label_free` on a simulated data set, as if it had no labels: tau from its
     validation split without labels, the measures on its test split (whose labels give the
     mIoU rows)."""
@@ -377,7 +391,8 @@ def export_from_dataset(checkpoint_path, data_root, name: str, out_dir,
               "frames": len(calib["x"]) + len(held["x"]),
               "description": f"simulated data set `{data_root}` (val and test splits)",
               "held_out_rule": "its test split"}
-    return export_label_free(checkpoint_path, name, out_dir, calib, held, source, inference)
+    return export_label_free(checkpoint_path, name, out_dir, calib, held, source, inference,
+                             vote_piles, vote_scales)
 
 
 def _span(values) -> list[int] | None:
@@ -413,7 +428,8 @@ def label_free_markdown(card: dict) -> str:
         f"held-out frames{_frames_text(held)}: {src['held_out_rule']}",
         f"* **Inference:** tau {card['tau']:.3f} (from the frames: {cal['criterion']}), "
         + _settings_text(card["inference"]) + f", weights stored in {card['precision']}; "
-        f"{card['hardware']}", "",
+        f"{card['hardware']}",
+        *_vote_line(card), "",
         "## Label-free measures on the held-out frames", "",
         *[f"* {line}" for line in format_measures(card["measures"]).splitlines()], "",
         "Reconstruction L1: the z-buffered render against the model's 64 x 64 input; coverage: "
@@ -503,6 +519,14 @@ def _settings_text(d: dict) -> str:
              if cfg.split_scale else "")
     return (f"{start}{head}, {smooth.iters} smoothing iterations + {smooth.full_res_active} at "
             f"full resolution{vote}{split}{precision}")
+
+
+def _vote_line(card: dict) -> list[str]:
+    """The vote's scale where it was chosen on labelled piles (`vote_scale`)."""
+    from .vote_scale import describe
+
+    vote = card.get("vote_scale")
+    return [f"* **Vote:** {describe(vote)}"] if vote else []
 
 
 def _distill_line(card: dict) -> list[str]:

@@ -253,6 +253,16 @@ class Segmenter:
         """(B, 1, 64, 64) prepared inputs -> labels (B, 64, 64) uint8, renders, scores, recon.
         `tau` and `settings` override the model's. `segments`: each frame's
         `superpixels.frame_segments` made beforehand (a list, or a Future of one)."""
+        cfg = self.inference if settings is None else settings
+        x = torch.as_tensor(x, dtype=torch.float32, device=self.device)
+        out = self.model_labels(x, fg, tau, cfg)
+        return self.vote_and_split(out, x, cfg, tau, segments)
+
+    @torch.no_grad()
+    def model_labels(self, x: np.ndarray | torch.Tensor, fg=None, tau: float | None = None,
+                     settings: InferenceConfig | None = None) -> dict:
+        """`segment_batch` up to the vote: the z-buffered (or label head's) labels, smoothed,
+        with the renders and the reconstruction."""
         tau = self.tau if tau is None else float(tau)
         cfg = self.inference if settings is None else settings
         x = torch.as_tensor(x, dtype=torch.float32, device=self.device)
@@ -265,15 +275,27 @@ class Segmenter:
             if self.label_head is None:
                 raise ValueError("label_head on: this model has no label head; valid: off")
             labels = head_labels(self.label_head, x, out["renders"], labels, fg_t)
-        labels = smooth_labels(labels, x, out["renders"].shape[1], cfg.smooth)
+        out["labels"] = smooth_labels(labels, x, out["renders"].shape[1], cfg.smooth)
+        return out
+
+    def vote_and_split(self, out: dict, x: np.ndarray | torch.Tensor,
+                       settings: InferenceConfig | None = None, tau: float | None = None,
+                       segments=None) -> dict:
+        """`model_labels`' output -> a new dict with its labels voted within the depth
+        superpixels and split (`settings.superpixel_scale`, `split_scale`), and each
+        instance's score; `out` itself is left as it is, so that one frame's model labels can
+        be voted at several scales (`vote_scale.choose`)."""
+        tau = self.tau if tau is None else float(tau)
+        cfg = self.inference if settings is None else settings
+        x = torch.as_tensor(x, dtype=torch.float32, device=self.device)
+        n = out["renders"].shape[1]
         if isinstance(segments, Future):
             segments = segments.result()
-        labels = vote_labels(labels, x, out["renders"].shape[1], cfg.superpixel_scale, segments)
-        labels, cut = split_labels(labels, x, out["renders"].shape[1], cfg.split_scale, segments)
-        out["labels"] = labels
+        labels = vote_labels(out["labels"], x, n, cfg.superpixel_scale, segments)
+        labels, cut = split_labels(labels, x, n, cfg.split_scale, segments)
         # a piece cut off another instance has no render to measure its visible share by: 0
-        out["scores"] = instance_scores(out["renders"], labels, tau).masked_fill(cut, 0.0)
-        return out
+        scores = instance_scores(out["renders"], labels, tau).masked_fill(cut, 0.0)
+        return {**out, "labels": labels, "scores": scores}
 
     def __call__(self, depth_m: np.ndarray, prep_cfg=None, tau: float | None = None,
                  reconstruction: bool = True, settings: InferenceConfig | None = None

@@ -12,7 +12,7 @@ from conftest import run_cli
 
 from inseggan_ros import checkpoint, losses
 from inseggan_ros.data import load_bag, load_sim_split
-from inseggan_ros.loop import AUTO_SIZE_ROUNDS
+from inseggan_ros.loop import AUTO_SIZE_ROUNDS, VOTE_SCALES
 from inseggan_ros.preprocess import PreprocessConfig
 from inseggan_ros.sim.learned import model_camera, template_scale
 from inseggan_ros.metrics import mean_miou, miou_batch
@@ -55,6 +55,15 @@ def test_a_tiny_loop_explains_held_out_scenes_of_its_shape_better_than_its_start
     card = json.loads((out / "model" / "card.json").read_text())
     assert card["label_free"] and card["labelled"]["frames"] == 20  # the user's test frames
     assert (out / "model" / "model.pt").is_file() and (out / "model" / "qualitative.png").is_file()
+    # the vote's scale chosen on the piles' validation split: every default scale scored, and
+    # the one chosen is what the model ships and its card names
+    vote = summary["vote_scale"]
+    assert vote == card["vote_scale"] and vote["frames"] == 16
+    assert {r["scale"] for r in vote["rows"]} == set(VOTE_SCALES) | {vote["default"]}
+    assert checkpoint.load(out / "model" / "model.pt")["inference"]["superpixel_scale"] \
+        == vote["scale"] == card["inference"]["superpixel_scale"]
+    assert f"**Vote:** scale {vote['scale']}, chosen on 16 labelled simulated piles" in \
+        (out / "model" / "README.md").read_text()
     # held-out scenes of the learned shape, from a seed the loop did not use
     held = tmp / "held"
     run_cli("simulate", "--quiet", "--object", MODEL, "--instances", "4", "--count", "40",
@@ -100,6 +109,9 @@ def test_loop_refuses_a_missing_model_and_frames_of_another_camera(tmp):
     p = run_cli("loop", "--model", MODEL, "--data", tmp / "other", "--out", tmp / "o")
     assert p.returncode == 2 and "not cut as the model's were roi" in p.stderr, p.stderr
     assert not (tmp / "o" / "sim").exists()
+    p = run_cli("loop", "--model", MODEL, "--data", tmp / "other", "--out", tmp / "o",
+                "--vote-scales", "50,0")
+    assert p.returncode == 2 and "'50,0' is not scales like 50,160,250" in p.stderr, p.stderr
 
 
 def test_one_command_from_a_bag_learns_the_shape_then_ships_a_model(tmp):
@@ -150,6 +162,7 @@ def test_one_command_from_a_bag_learns_the_shape_then_ships_a_model(tmp):
     card = json.loads((out / "model" / "card.json").read_text())
     assert card["label_free"] and card["source"]["kind"] == "bag"
     assert card["labelled"]["frames"] == 6  # from the labels topic, for the card only
+    assert card["vote_scale"]["frames"] == 4  # chosen on the last piles' validation split
     # the piles: the bag's camera (its tilt found), cut as the bag's frames are (the bin found
     # in every frame), so that their bin lands where the bag's does
     sim_camera = json.loads((out / "sim" / "meta.json").read_text())["scene"]["camera"]
