@@ -449,6 +449,10 @@ def cmd_loop(args) -> int:
     if summary.get("size_rounds"):
         print("template scales chosen by the frames' reconstruction, round by round: "
               + ", ".join(f"{r['scale']:g}" for r in summary["size_rounds"]))
+    if summary.get("vote_scale"):
+        from .vote_scale import describe
+
+        print(f"superpixel vote: {describe(summary['vote_scale'])}")
     return 0
 
 

@@ -64,6 +64,7 @@ def test_a_tiny_loop_explains_held_out_scenes_of_its_shape_better_than_its_start
         == vote["scale"] == card["inference"]["superpixel_scale"]
     assert f"**Vote:** scale {vote['scale']}, chosen on 16 labelled simulated piles" in \
         (out / "model" / "README.md").read_text()
+    assert f"superpixel vote: scale {vote['scale']}, chosen on 16" in p.stdout
     # held-out scenes of the learned shape, from a seed the loop did not use
     held = tmp / "held"
     run_cli("simulate", "--quiet", "--object", MODEL, "--instances", "4", "--count", "40",
