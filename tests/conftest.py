@@ -89,6 +89,20 @@ def tiny_model(tmp_path_factory):
     return root
 
 
+@pytest.fixture(scope="module")
+def cylinder_bag():
+    """The shipped cylinder model (one torch thread) and its labelled sample bag's frames; one
+    per test module, which may change the model's settings."""
+    import torch
+
+    from inseggan_ros import data
+    from inseggan_ros.segment import Segmenter
+
+    torch.set_num_threads(1)
+    seg = Segmenter.from_checkpoint(REPO / "models" / "cylinder" / "model.pt", device="cpu")
+    return seg, data.load_bag(BAGS / "cylinder_sim", seg.prep_cfg)
+
+
 @pytest.fixture(scope="session")
 def python():
     return sys.executable

@@ -3,11 +3,10 @@ the parts it missed split off along coarse depth segments (`split_scale`)."""
 from dataclasses import replace
 
 import numpy as np
-import pytest
 import torch
-from conftest import BAGS, REPO
+from conftest import BAGS
 
-from inseggan_ros import bags, data, evaluate
+from inseggan_ros import bags, evaluate
 from inseggan_ros.metrics import mean_miou, miou_batch
 from inseggan_ros.segment import Segmenter
 from inseggan_ros.superpixels import (depth_superpixels, frame_segments, split_frame,
@@ -51,13 +50,6 @@ def test_every_superpixel_takes_one_label_and_every_part_pixel_keeps_one():
         assert len(np.unique(voted[(seg == s) & (noisy > 0)])) == 1
         counts = np.bincount(noisy[(seg == s) & (noisy > 0)], minlength=4)
         assert counts[voted[(seg == s) & (noisy > 0)][0]] == counts.max()  # the most frequent
-
-
-@pytest.fixture(scope="module")
-def cylinder_bag():
-    torch.set_num_threads(1)
-    seg = Segmenter.from_checkpoint(REPO / "models" / "cylinder" / "model.pt", device="cpu")
-    return seg, data.load_bag(BAGS / "cylinder_sim", seg.prep_cfg)
 
 
 def test_the_segmenter_votes_its_labels_after_smoothing(cylinder_bag):

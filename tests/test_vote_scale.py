@@ -4,19 +4,9 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-import torch
-from conftest import BAGS, REPO
 
-from inseggan_ros import data, vote_scale
+from inseggan_ros import vote_scale
 from inseggan_ros.metrics import mean_miou, miou_batch
-from inseggan_ros.segment import Segmenter
-
-
-@pytest.fixture(scope="module")
-def cylinder_bag():
-    torch.set_num_threads(1)
-    seg = Segmenter.from_checkpoint(REPO / "models" / "cylinder" / "model.pt", device="cpu")
-    return seg, data.load_bag(BAGS / "cylinder_sim", seg.prep_cfg)
 
 
 def test_each_scale_is_scored_as_the_segmenter_votes_and_the_best_is_kept(cylinder_bag):
