@@ -341,12 +341,11 @@ def _export(finished: Path, data, cfg: LoopConfig, out: Path, piles: dict | None
             ) -> dict:
     """Stage 5: the model shipped with `cfg.export_settings` (a training checkpoint carries
     only the bare defaults: no refinement, one starting point, no smoothing); with labelled
-    `piles` (the last simulation's validation split), the vote's scale chosen on them among
-    `cfg.vote_scales`."""
+    `piles` (the last simulation's validation split; `run` loads them only where
+    `cfg.vote_scales` names scales), the vote's scale chosen on them among those."""
     from .modelcard import export_from_bag, export_from_dataset
 
     inference = _shipped_segmenter(finished, cfg).inference
-    piles = piles if cfg.vote_scales else None
     if isinstance(data, BagFrames):
         return export_from_bag(finished, data.path, cfg.name, out, data.topic, data.labels_topic,
                                data.held_out, inference=inference, vote_piles=piles,
