@@ -411,6 +411,7 @@ def cmd_loop(args) -> int:
     cfg = LoopConfig(scenes=args.scenes, val_scenes=args.val_scenes, iterations=args.iterations,
                      lr=args.lr, seed=args.seed, workers=args.workers, name=args.name,
                      user_weight=args.user_weight, head_iterations=args.head_iterations,
+                     centre_iterations=args.centre_iterations,
                      self_frames=args.self_frames, self_iterations=args.self_iterations,
                      self_settings=args.self_settings, export_settings=args.export_settings,
                      size_by_thickness=args.size_by_thickness, size_rounds=args.size_rounds,
@@ -474,6 +475,26 @@ def cmd_head(args) -> int:
           f"scenes {first:.3f} (z-buffer) -> {summary['best_val_miou']:.3f} (head); model with "
           f"the head: {summary['model']} (tau {summary['tau']:.2f}); ship it with `inseggan "
           "export --checkpoint` it and `--label-head on`")
+    return 0
+
+
+def cmd_centres(args) -> int:
+    from .centres import CentreConfig, fit
+    from .paths import resolve_model
+
+    import torch
+
+    if args.threads < 1:
+        raise ValueError(f"--threads {args.threads} invalid; valid: >= 1")
+    torch.set_num_threads(args.threads)
+    cfg = CentreConfig(width=args.width, iterations=args.iterations, batch=args.batch,
+                       lr=args.lr, seed=args.seed, eval_every=min(500, args.iterations))
+    summary = fit(resolve_model(str(args.model)), args.sim, args.out, cfg, frames=args.frames,
+                  progress=not args.quiet)
+    print(f"centre votes in {summary['seconds'] / 60:.1f} min: validation mIoU on the "
+          f"simulated scenes {summary['best_val_miou']:.3f}; model with them: "
+          f"{summary['model']} (centre_votes: on); ship it with `inseggan export --checkpoint` "
+          "it, or measure it with `inseggan eval --model` it")
     return 0
 
 
@@ -970,6 +991,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also train a label head on the same piles for this many iterations "
                         "and ship the model with it on (0, the default: none; measured: "
                         "docs/experiments.md, 2026-11-25, a label head)")
+    p.add_argument("--centre-iterations", type=int, default=0,
+                   help="also train centre votes (`inseggan centres`) on the same piles for "
+                        "this many iterations and ship the model with them on (0, the "
+                        "default: none)")
     p.add_argument("--self-frames", type=int, default=0,
                    help="then fit the encoder further to the model's own labels (at "
                         "--self-settings) of this many of the user's training frames, no label "
@@ -1053,6 +1078,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_head)
+
+    p = sub.add_parser("centres", help="train centre votes for a model on labelled simulated "
+                                       "scenes (the loop's OUT/sim)")
+    p.add_argument("--model", type=Path, required=True,
+                   help="a checkpoint (the loop's OUT/encoder/best.pt) or model.pt")
+    p.add_argument("--sim", type=Path, required=True,
+                   help="a simulated data set of the model's learned part (train, val)")
+    p.add_argument("--out", type=Path, required=True,
+                   help="output folder; a killed run started again resumes from its last.pt")
+    p.add_argument("--iterations", type=int, default=3000, help="(3000)")
+    p.add_argument("--width", type=int, default=16, help="channels at 64 x 64 (16)")
+    p.add_argument("--batch", type=int, default=32, help="scenes per iteration (32)")
+    p.add_argument("--lr", type=float, default=2e-3)
+    p.add_argument("--frames", type=int, help="scenes per split at most (default: all)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=cmd_centres)
 
     p = sub.add_parser("eval", help="InSeGAN vs classical baselines (mIoU table, PNG)")
     p.add_argument("--model", type=Path, required=True)

@@ -43,6 +43,8 @@ resumes from its last checkpoint; the export writes its folder atomically):
   4. self (only with `self_frames`): the encoder fitted further to the model's own labels, at
      `self_settings`, of the user's training frames (`selffit.py`; no label read) ->
      out/self/last.pt;
+  4b. centres (only with `centre_iterations`): centre votes (`centres.py`) taught on the same
+     piles; the model with them (`centre_votes: on`) is out/centres/model.pt;
   5. export: out/model with the shipped settings (`export_settings`, realtime.yaml), the
      superpixel vote's scale chosen on the last piles' validation split (`vote_scales`,
      `vote_scale.py`: the piles' labels are the loop's own), tau and the card from the user's
@@ -89,6 +91,7 @@ class LoopConfig:
     user_frames: int = 3000  # at most this many of them
     head_iterations: int = 0  # of a label head on the same scenes (0 = none; it helped the
     # cone and hurt the pin connector: docs/experiments.md)
+    centre_iterations: int = 0  # of centre votes on the same scenes (`centres.py`; 0 = none)
     seed: int = 11  # of the simulated scenes
     workers: int = 1  # simulation processes (and self-labelling processes)
     name: str = "model"  # the exported model's name
@@ -139,6 +142,12 @@ class LoopConfig:
         if self.head_iterations < 0:
             raise ValueError(f"head_iterations {self.head_iterations!r} invalid; valid: >= 0 "
                              "(0 = no label head)")
+        if self.centre_iterations < 0:
+            raise ValueError(f"centre_iterations {self.centre_iterations!r} invalid; valid: "
+                             ">= 0 (0 = no centre votes)")
+        if self.centre_iterations and self.head_iterations:
+            raise ValueError("head_iterations and centre_iterations both set: the labels come "
+                             "from one of them; valid: at most one above 0")
         if not 0 < self.lr < 1:
             raise ValueError(f"lr {self.lr!r} invalid; valid: in (0, 1)")
         if not self.user_weight >= 0:
@@ -303,6 +312,21 @@ def label_head_stage(model: Path, sim: Path, data, out: Path, cfg: LoopConfig,
                       eval_every=max(1, min(250, cfg.head_iterations)))
     return Path(fit(model, sim, out, hcfg, tau=tau, progress=progress,
                     as_given=isinstance(data, BagFrames))["model"])
+
+
+def centres_stage(model: Path, sim: Path, view: dict, out: Path, cfg: LoopConfig,
+                  progress: bool = True) -> Path:
+    """Stage 4b: centre votes (`centres.fit`) for the model on the last simulated piles, cut
+    as the user's frames are (`view`) -> out/model.pt. A killed run resumes from out/last.pt;
+    skipped when out/model.pt exists."""
+    from .centres import CentreConfig, fit
+
+    if (out / "model.pt").is_file():
+        return out / "model.pt"
+    ccfg = CentreConfig(iterations=cfg.centre_iterations, seed=cfg.seed,
+                        eval_every=max(1, min(500, cfg.centre_iterations)))
+    return Path(fit(model, sim, out, ccfg, progress=progress,
+                    as_given=view.get("as_given", False))["model"])
 
 
 def self_stage(model: Path, data, out: Path, cfg: LoopConfig, progress: bool = True) -> Path:
@@ -597,7 +621,8 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
     out.mkdir(parents=True, exist_ok=True)  # drops the default stage for an unsized folder
     seconds: dict[str, float] = {}
     stages = tqdm(total=(3 if model is not None else 4) + bool(cfg.head_iterations)
-                  + bool(cfg.self_frames) + (thickness != "off") + size_rounds,
+                  + bool(cfg.self_frames) + bool(cfg.centre_iterations)
+                  + (thickness != "off") + size_rounds,
                   desc="loop", unit="stage", disable=not progress,
                   position=0)
     if model is None:
@@ -646,6 +671,11 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
         t0 = time.monotonic()
         finished = self_stage(finished, data, out / "self", cfg, progress)
         seconds["self"] = round(time.monotonic() - t0, 1)
+        stages.update(1)
+    if cfg.centre_iterations:
+        t0 = time.monotonic()
+        finished = centres_stage(finished, sim, view, out / "centres", cfg, progress)
+        seconds["centres"] = round(time.monotonic() - t0, 1)
         stages.update(1)
 
     t0 = time.monotonic()

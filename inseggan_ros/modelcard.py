@@ -513,8 +513,10 @@ def _settings_text(d: dict) -> str:
     precision = ("" if cfg.encoder_precision == "float32"
                  else f", encoder in {cfg.encoder_precision}")
     head = ", labels from the label head" if cfg.label_head == "on" else ""
+    if cfg.centre_votes == "on":
+        head = ", instances from the centre votes"
     vote = (f", then voted within depth superpixels (scale {cfg.superpixel_scale})"
-            if cfg.superpixel_scale else "")
+            if cfg.superpixel_scale and cfg.centre_votes != "on" else "")
     split = (f", missed parts split off along coarse depth segments (scale {cfg.split_scale})"
              if cfg.split_scale else "")
     return (f"{start}{head}, {smooth.iters} smoothing iterations + {smooth.full_res_active} at "

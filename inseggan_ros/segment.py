@@ -21,6 +21,7 @@ import torch
 import torch.nn.functional as F
 
 from . import checkpoint
+from .centres import centre_labels, match_to_renders, net_from_state
 from .label_head import head_labels, head_from_state
 from .metrics import mean_miou, miou_batch
 from .model import TemplateGenerator
@@ -33,6 +34,11 @@ from .smoothing import smooth_full, smooth_labels
 from .superpixels import frame_segments, split_labels, vote_labels
 
 TAU_GRID = tuple(np.round(np.linspace(-0.95, 0.5, 30), 3))
+
+
+def vote_scale(cfg: InferenceConfig) -> int:
+    """The superpixel vote's scale the settings run: none over centre votes (`centres.py`)."""
+    return 0 if cfg.centre_votes == "on" else cfg.superpixel_scale
 
 
 def _median3(x: torch.Tensor) -> torch.Tensor:
@@ -164,6 +170,9 @@ class Segmenter:
     """A trained model + its preprocessing + tau + its test-time settings (`InferenceConfig`):
     depth frames in, segmentations out.
 
+    `centre_net`: the model's centre votes (`centres.py`), used where the settings say
+    `centre_votes: on`.
+
     `superpixel_thread`: a frame's two graph segmentations (`superpixels.frame_segments`),
     which depend on the input alone, are made in a second thread while the encoder and the
     renders run in this one; the labels are the same, the frame's latency lower where a second
@@ -171,15 +180,16 @@ class Segmenter:
 
     def __init__(self, G, E, model_cfg, prep_cfg, tau: float, device: str = "cpu",
                  inference: InferenceConfig = InferenceConfig(), label_head=None,
-                 superpixel_thread: bool = False):
+                 superpixel_thread: bool = False, centre_net=None):
         self.G, self.E = G.eval().to(device), E.eval().to(device)
         self.label_head = label_head.eval().to(device) if label_head is not None else None
+        self.centre_net = centre_net.eval().to(device) if centre_net is not None else None
         for p in self.G.parameters():  # test-time refinement optimises codes, never weights
             p.requires_grad_(False)
         self.model_cfg, self.prep_cfg, self.tau, self.device = model_cfg, prep_cfg, tau, device
         self.inference = inference
         self.stored_settings = True  # `inference` is what the model ships (see from_checkpoint)
-        self._encoders = {}  # precision -> the encoder that computes in it
+        self._encoders = {}  # precision (or ("centre_net", precision)) -> the copy in it
         self.superpixel_thread = superpixel_thread
         self._pool = None  # made on first use
 
@@ -194,6 +204,9 @@ class Segmenter:
                              "starting points and smoothing still apply)")
         if cfg.label_head == "on" and self.label_head is None:
             raise ValueError("label_head on: this model has no label head; valid: off")
+        if cfg.centre_votes == "on" and self.centre_net is None:
+            raise ValueError("centre_votes on: this model has no centre-vote network "
+                             "(`inseggan centres` makes one); valid: off")
 
     def encoder_changed(self) -> None:
         """Call after changing E's weights: its copies in other precisions are made anew."""
@@ -204,6 +217,17 @@ class Segmenter:
         if precision == "auto":
             return "bfloat16" if native_bfloat16(self.device) else "float32"
         return precision
+
+    def centre_votes_net(self, precision: str = "float32"):
+        """The centre-vote network in `precision`, as `encoder` (it runs beside the encoder and
+        in the same arithmetic)."""
+        precision = self.resolve_precision(precision)
+        if precision == "float32":
+            return self.centre_net
+        key = ("centre_net", precision)
+        if key not in self._encoders:
+            self._encoders[key] = CastEncoder(self.centre_net, getattr(torch, precision)).eval()
+        return self._encoders[key]
 
     def encoder(self, precision: str = "float32"):
         """The encoder in `precision` (`settings.PRECISIONS`)."""
@@ -238,10 +262,20 @@ class Segmenter:
         elif inference.label_head == "on":
             raise checkpoint.CheckpointError(f"{path}: its settings use a label head it does not "
                                              "have (label_head: on)")
+        centres = None
+        if state.get("centre_net") is not None:
+            try:
+                centres = net_from_state(state["centre_net"])
+            except (KeyError, TypeError, ValueError, RuntimeError) as e:
+                raise checkpoint.CheckpointError(f"{path}: bad centre-vote network ({e})") \
+                    from None
+        elif inference.centre_votes == "on":
+            raise checkpoint.CheckpointError(f"{path}: its settings use a centre-vote network "
+                                             "it does not have (centre_votes: on)")
         tau = float(state.get("tau", -0.5) if tau is None else tau)
         seg = Segmenter(G, E, cfg, prep, tau, device=checkpoint.pick_device(device),
                         inference=inference, label_head=head,
-                        superpixel_thread=superpixel_thread)
+                        superpixel_thread=superpixel_thread, centre_net=centres)
         # a training checkpoint stores no settings: a parameters file then applies over
         # realtime.yaml's (`settings.file_base`), not over these bare defaults
         seg.stored_settings = "inference" in state
@@ -275,6 +309,13 @@ class Segmenter:
             if self.label_head is None:
                 raise ValueError("label_head on: this model has no label head; valid: off")
             labels = head_labels(self.label_head, x, out["renders"], labels, fg_t)
+        if cfg.centre_votes == "on":
+            if self.centre_net is None:
+                raise ValueError("centre_votes on: this model has no centre-vote network; "
+                                 "valid: off")
+            n = out["renders"].shape[1]
+            net = self.centre_votes_net(cfg.encoder_precision)
+            labels = match_to_renders(centre_labels(net, x, fg_t, n), labels, n)
         out["labels"] = smooth_labels(labels, x, out["renders"].shape[1], cfg.smooth)
         return out
 
@@ -291,7 +332,7 @@ class Segmenter:
         n = out["renders"].shape[1]
         if isinstance(segments, Future):
             segments = segments.result()
-        labels = vote_labels(out["labels"], x, n, cfg.superpixel_scale, segments)
+        labels = vote_labels(out["labels"], x, n, vote_scale(cfg), segments)
         labels, cut = split_labels(labels, x, n, cfg.split_scale, segments)
         # a piece cut off another instance has no render to measure its visible share by: 0
         scores = instance_scores(out["renders"], labels, tau).masked_fill(cut, 0.0)
@@ -313,11 +354,11 @@ class Segmenter:
                              f"{self.prep_cfg.max_height} m, {self.prep_cfg.size} px")
         prep = prepare(depth_m, prep_cfg)
         segments = None
-        if self.superpixel_thread and (cfg.superpixel_scale > 0 or cfg.split_scale > 0):
+        if self.superpixel_thread and (vote_scale(cfg) > 0 or cfg.split_scale > 0):
             if self._pool is None:
                 self._pool = ThreadPoolExecutor(1, thread_name_prefix="superpixels")
             segments = self._pool.submit(lambda: [frame_segments(
-                prep.x, prep.fg, (cfg.superpixel_scale, cfg.split_scale))])
+                prep.x, prep.fg, (vote_scale(cfg), cfg.split_scale))])
         out = self.segment_batch(prep.x[None, None], fg=prep.fg[None], tau=tau, settings=cfg,
                                  segments=segments)
         labels64 = out["labels"][0].cpu().numpy()

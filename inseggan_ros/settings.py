@@ -22,6 +22,8 @@ from pathlib import Path
 PRECISIONS = ("float32", "bfloat16", "auto")
 # Where the labels come from: the label head (`label_head.py`) or the z-buffer alone.
 LABEL_HEAD = ("on", "off")
+# Whether the labels come from the model's centre votes (`centres.py`) instead.
+CENTRE_VOTES = ("on", "off")
 
 
 def _doc(text: str, lo: int | None = None, hi: int | None = None,
@@ -99,6 +101,11 @@ class InferenceConfig:
         "the labels from the model's label head (on: each pixel moved to the instance the head "
         "scores highest, given the input and the renders; models without a head: off) or "
         "straight from the z-buffer (off)", choices=LABEL_HEAD))
+    centre_votes: str = field(default="off", metadata=_doc(
+        "the instances from the model's centre votes (on: a small network's heatmap of part "
+        "centres and each pixel's offset to its part's centre, each instance given the id of "
+        "the render it overlaps most; then smoothing and split, no superpixel vote; models "
+        "without the network: off) or from the z-buffer (off)", choices=CENTRE_VOTES))
 
     def __post_init__(self):
         for name, ok, valid in (
@@ -110,9 +117,13 @@ class InferenceConfig:
                 ("split_scale", self.split_scale >= 0, ">= 0 (0 = off)"),
                 ("encoder_precision", self.encoder_precision in PRECISIONS,
                  ", ".join(PRECISIONS)),
-                ("label_head", self.label_head in LABEL_HEAD, ", ".join(LABEL_HEAD))):
+                ("label_head", self.label_head in LABEL_HEAD, ", ".join(LABEL_HEAD)),
+                ("centre_votes", self.centre_votes in CENTRE_VOTES, ", ".join(CENTRE_VOTES))):
             if not ok:
                 raise ValueError(f"{name} {getattr(self, name)!r} invalid; valid: {valid}")
+        if self.label_head == "on" and self.centre_votes == "on":
+            raise ValueError("label_head on and centre_votes on: the labels come from one of "
+                             "them; valid: at most one on")
 
     def to_dict(self) -> dict:
         return {**{f.name: getattr(self, f.name) for f in fields(self) if f.name != "smooth"},

@@ -36,6 +36,9 @@ def choose(seg, piles: dict, scales=SCALES, tolerance: float = TOLERANCE) -> dic
     the scale stays 0; on a single pile the settings' own scale is kept."""
     cfg = seg.inference
     default = cfg.superpixel_scale
+    if cfg.centre_votes == "on":
+        return {"scale": default, "default": default, "frames": 0, "rows": [],
+                "note": "no vote over centre votes"}
     if default == 0:
         return {"scale": 0, "default": 0, "frames": 0, "rows": [],
                 "note": "the vote is off in these settings"}

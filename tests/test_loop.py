@@ -90,6 +90,18 @@ def test_a_tiny_loop_explains_held_out_scenes_of_its_shape_better_than_its_start
     assert card["distillation"]["self_fit"]["frames"] == 8  # and the loop's step before it
     assert card["distillation"]["previous"]["config"]["labels"] == "simulated"
     assert checkpoint.load(out / "self" / "last.pt")["distill"]["iteration"] == 10
+    # and again with centre votes: taught on the same piles after the self-fit, shipped on,
+    # with no superpixel vote chosen over them (their training: tests/test_centres.py)
+    p = run_cli(*args, "--self-frames", "8", "--self-iterations", "10", "--centre-iterations",
+                "20", check=True, timeout=900)
+    again = json.loads((out / "summary.json").read_text())
+    assert list(again["seconds"]) == ["simulate", "encoder", "self", "centres", "export"], again
+    shipped = checkpoint.load(out / "model" / "model.pt")
+    assert shipped["centre_net"]["width"] == 16 and shipped["inference"]["centre_votes"] == "on"
+    assert shipped["centre_net"]["sim"] == str(out / "sim")
+    assert again["vote_scale"]["note"] == "no vote over centre votes"
+    assert "superpixel vote: not chosen (no vote over centre votes)" in p.stdout
+    assert "instances from the centre votes" in (out / "model" / "README.md").read_text()
     # without a model the loop's first stage learns the shape from the data set's training
     # frames (here for 2 iterations; from a bag, the test below)
     from inseggan_ros.loop import learn_shape
