@@ -315,4 +315,3 @@ def fit(model, sim, out, cfg: CentreConfig = CentreConfig(), frames: int | None 
                 inference=inference.to_dict())
     checkpoint.save(out / "model.pt", keep)
     return {**summary, "model": str(out / "model.pt")}
-

@@ -11,7 +11,7 @@ import torch
 from conftest import run_cli
 from inseggan_ros import checkpoint
 from inseggan_ros.centres import (OFFSET_UNIT, CentreConfig, CentreNet, centre_labels, decode,
-                                  match_to_renders, miou_of, targets, train_net)
+                                  match_to_renders, miou_of, targets)
 from inseggan_ros.data import load_sim_split
 from inseggan_ros.loop import LoopConfig
 from inseggan_ros.segment import Segmenter
