@@ -129,7 +129,7 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, inference=None,
         "hardware": f"{platform.machine()} CPU, {os.cpu_count()} cores (torch threads: 1)",
         "tau": tau, **_settings_fields(seg, inference, also),
         "distillation": distill_record(state),
-        "shape_fit": fit,
+        "shape_fit": fit, "centre_votes": centres_record(state),
         "precision": precision,
         "sample_bag": sample_bag, "sample_bag_scores": bag_scores,
         "val_miou": {"float32": val_full, "float16": val_half},
@@ -178,7 +178,7 @@ def apply_settings(model_dir, data_root, inference, also: dict | None = None) ->
     test = data_mod.load_sim_split(data_root, "test", seg.prep_cfg)
     results = _test_results(seg, test, also)
     card.update({
-        **_settings_fields(seg, inference, also),
+        **_settings_fields(seg, inference, also), "centre_votes": centres_record(state),
         "val_miou": {"float32": None, "float16": None, card["precision"]: _val_miou(seg, val)},
         "test": evaluate.summarise(results, len(test["x"]))})
     if card.get("sample_bag"):
@@ -327,6 +327,7 @@ def export_label_free(checkpoint_path, name: str, out_dir, calib: dict, held: di
         "encoder_precision": seg.resolve_precision(inf.encoder_precision),
         "precision": "float32",  # no labels to show that float16 weights change nothing
         "measures": measures, "labelled": labelled, "vote_scale": vote,
+        "centre_votes": centres_record(state),
     }
 
     def write(tmp: Path) -> None:
@@ -429,7 +430,7 @@ def label_free_markdown(card: dict) -> str:
         f"* **Inference:** tau {card['tau']:.3f} (from the frames: {cal['criterion']}), "
         + _settings_text(card["inference"]) + f", weights stored in {card['precision']}; "
         f"{card['hardware']}",
-        *_vote_line(card), "",
+        *_vote_line(card), *_centres_line(card), "",
         "## Label-free measures on the held-out frames", "",
         *[f"* {line}" for line in format_measures(card["measures"]).splitlines()], "",
         "Reconstruction L1: the z-buffered render against the model's 64 x 64 input; coverage: "
@@ -521,6 +522,33 @@ def _settings_text(d: dict) -> str:
              if cfg.split_scale else "")
     return (f"{start}{head}, {smooth.iters} smoothing iterations + {smooth.full_res_active} at "
             f"full resolution{vote}{split}{precision}")
+
+
+def centres_record(state: dict) -> dict | None:
+    """The card's account of a model's centre votes (`centres.fit`), without the weights."""
+    net = state.get("centre_net")
+    if not net:
+        return None
+    summary = net.get("summary", {})
+    return {"width": net["width"], "sim": net.get("sim"),
+            "iterations": summary.get("config", {}).get("iterations"),
+            "train_frames": summary.get("train_frames"),
+            "val_frames": summary.get("val_frames"),
+            "best_val_miou": summary.get("best_val_miou"), "seconds": summary.get("seconds")}
+
+
+def _centres_line(card: dict) -> list[str]:
+    """Where the model's centre votes were taught, and whether its settings use them."""
+    c = card.get("centre_votes")
+    if not c:
+        return []
+    used = "on" if card["inference"].get("centre_votes") == "on" else "off in these settings"
+    best = c.get("best_val_miou")
+    return [f"* **Centre votes** ({used}): a {c['width']}-wide network taught on "
+            f"{c.get('train_frames')} labelled simulated piles of the learned part "
+            f"(`{c.get('sim')}`), {c.get('iterations')} iterations; mIoU on "
+            f"{c.get('val_frames')} more piles "
+            + (f"{best:.3f}" if best is not None else "?")]
 
 
 def _vote_line(card: dict) -> list[str]:
@@ -801,7 +829,7 @@ def card_markdown(card: dict) -> str:
         f"(validation mIoU float32 {card['val_miou']['float32']:.4f}"
         + (f", float16 {card['val_miou']['float16']:.4f}"
            if card['val_miou']['float16'] is not None else "")
-        + ")", "",
+        + ")", *_centres_line(card), "",
         "## Test split (held-out scenes)", "",
         format_table(card["test"]), "",
         "Hard subset: frames where K-Means scores below 0.6 (the paper's choice of test images).",

@@ -244,6 +244,10 @@ def test_parameter_changes_are_validated_at_run_time():
                                "valid: off"),
         ("label_head", "'maybe'", "rejected: label_head 'maybe' invalid"),
         ("label_head", "'off'", "ok"),
+        # nor centre votes
+        ("centre_votes", "'on'", "rejected: centre_votes on: this model has no centre-vote "
+                                 "network (`inseggan centres` makes one); valid: off"),
+        ("centre_votes", "'off'", "ok"),
     ]
     try:
         got = set_params("/seg_params/segmenter", *((name, value) for name, value, _ in cases))
