@@ -189,7 +189,7 @@ class Segmenter:
         self.model_cfg, self.prep_cfg, self.tau, self.device = model_cfg, prep_cfg, tau, device
         self.inference = inference
         self.stored_settings = True  # `inference` is what the model ships (see from_checkpoint)
-        self._encoders = {}  # precision (or ("centre_net", precision)) -> the copy in it
+        self._encoders = {}  # precision -> the encoder that computes in it
         self.superpixel_thread = superpixel_thread
         self._pool = None  # made on first use
 
@@ -217,17 +217,6 @@ class Segmenter:
         if precision == "auto":
             return "bfloat16" if native_bfloat16(self.device) else "float32"
         return precision
-
-    def centre_votes_net(self, precision: str = "float32"):
-        """The centre-vote network in `precision`, as `encoder` (it runs beside the encoder and
-        in the same arithmetic)."""
-        precision = self.resolve_precision(precision)
-        if precision == "float32":
-            return self.centre_net
-        key = ("centre_net", precision)
-        if key not in self._encoders:
-            self._encoders[key] = CastEncoder(self.centre_net, getattr(torch, precision)).eval()
-        return self._encoders[key]
 
     def encoder(self, precision: str = "float32"):
         """The encoder in `precision` (`settings.PRECISIONS`)."""
@@ -314,8 +303,9 @@ class Segmenter:
                 raise ValueError("centre_votes on: this model has no centre-vote network; "
                                  "valid: off")
             n = out["renders"].shape[1]
-            net = self.centre_votes_net(cfg.encoder_precision)
-            labels = match_to_renders(centre_labels(net, x, fg_t, n), labels, n)
+            # in float32 whatever the encoder's arithmetic: in bfloat16 the cone's validation
+            # mIoU fell by 0.014 (docs/experiments.md, 2026-11-28, night)
+            labels = match_to_renders(centre_labels(self.centre_net, x, fg_t, n), labels, n)
         out["labels"] = smooth_labels(labels, x, out["renders"].shape[1], cfg.smooth)
         return out
 
