@@ -239,15 +239,15 @@ def test_parameter_changes_are_validated_at_run_time():
         ("encoder_precision", "'bfloat16'", "ok"),
         ("encoder_precision", "'float16'",
          "rejected: encoder_precision 'float16' invalid; valid: float32, bfloat16, auto"),
-        # the shipped cylinder model has no label head
+        # the shipped cylinder model labels with its centre votes; off, the z-buffer's labels
+        ("centre_votes", "'off'", "ok"),
+        # it has no label head
         ("label_head", "'on'", "rejected: label_head on: this model has no label head; "
                                "valid: off"),
         ("label_head", "'maybe'", "rejected: label_head 'maybe' invalid"),
         ("label_head", "'off'", "ok"),
-        # nor centre votes
-        ("centre_votes", "'on'", "rejected: centre_votes on: this model has no centre-vote "
-                                 "network (`inseggan centres` makes one); valid: off"),
-        ("centre_votes", "'off'", "ok"),
+        ("centre_votes", "'yes'", "rejected: centre_votes 'yes' invalid"),
+        ("centre_votes", "'on'", "ok"),
     ]
     try:
         got = set_params("/seg_params/segmenter", *((name, value) for name, value, _ in cases))
