@@ -5,6 +5,9 @@ and Gaussian-filtered; per pixel the instance whose render is nearest the camera
 wins (z-buffer); a pixel is background where every render is below the threshold tau. Labels are
 made at the model's 64 x 64 and mapped back to the input's pixels, on input foreground only.
 tau is calibrated on validation data and stored in the checkpoint (no per-object hand tuning).
+With centre votes (`centres.py`, `centre_votes: on`) the instances come from a small network's
+heatmap of part centres instead, each named after the render it overlaps most; the renders still
+give the scores and the reconstruction.
 
     seg = Segmenter.from_checkpoint("models/cylinder/model.pt")
     out = seg(depth_m)            # any resolution, metres; 0 = no reading
@@ -284,8 +287,8 @@ class Segmenter:
     @torch.no_grad()
     def model_labels(self, x: np.ndarray | torch.Tensor, fg=None, tau: float | None = None,
                      settings: InferenceConfig | None = None) -> dict:
-        """`segment_batch` up to the vote: the z-buffered (or label head's) labels, smoothed,
-        with the renders and the reconstruction."""
+        """`segment_batch` up to the vote: the z-buffered (or label head's, or centre votes')
+        labels, smoothed, with the renders and the reconstruction."""
         tau = self.tau if tau is None else float(tau)
         cfg = self.inference if settings is None else settings
         x = torch.as_tensor(x, dtype=torch.float32, device=self.device)
