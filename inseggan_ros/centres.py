@@ -54,11 +54,8 @@ class CentreConfig:
     seed: int = 0
 
     def __post_init__(self):
-        for key in ("width", "iterations", "batch", "eval_every"):
-            if getattr(self, key) < 1:
-                raise ValueError(f"{key} {getattr(self, key)!r} invalid; valid: >= 1")
-        if not self.lr > 0:
-            raise ValueError(f"lr {self.lr!r} invalid; valid: > 0")
+        from .label_head import check_training
+        check_training(self)
 
 
 def _block(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
@@ -180,13 +177,13 @@ def match_to_renders(labels: torch.Tensor, zbuffer: torch.Tensor, n: int) -> tor
 
 def net_state(net: CentreNet) -> dict:
     """What a checkpoint stores of the net (its "centre_net" entry)."""
-    return {"width": net.width, "state_dict": net.state_dict()}
+    from .checkpoint import width_state
+    return width_state(net)
 
 
 def net_from_state(state: dict) -> CentreNet:
-    net = CentreNet(int(state["width"]))
-    net.load_state_dict(state["state_dict"])
-    return net.eval()
+    from .checkpoint import from_width_state
+    return from_width_state(CentreNet, state)
 
 
 def miou_of(pred: np.ndarray, gt: np.ndarray) -> float:

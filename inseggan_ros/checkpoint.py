@@ -82,3 +82,16 @@ def export_for_inference(src, dst, half: bool = False) -> Path:
             keep[key] = {k: v.half() if v.is_floating_point() else v for k, v in keep[key].items()}
     keep["precision"] = "float16" if half else "float32"
     return save(dst, keep)
+
+
+def width_state(module) -> dict:
+    """What a checkpoint stores of a small network made from its width alone (a label head, the
+    centre votes): {"width", "state_dict"}."""
+    return {"width": module.width, "state_dict": module.state_dict()}
+
+
+def from_width_state(cls, state: dict):
+    """The network `cls(width)` with the weights of `width_state`'s record, in eval mode."""
+    module = cls(int(state["width"]))
+    module.load_state_dict(state["state_dict"])
+    return module.eval()

@@ -478,6 +478,14 @@ def cmd_head(args) -> int:
     return 0
 
 
+def _model_and_piles(p) -> None:
+    """--model and --sim of the commands that teach a network on the loop's piles."""
+    p.add_argument("--model", type=Path, required=True,
+                   help="a checkpoint (the loop's OUT/encoder/best.pt) or model.pt")
+    p.add_argument("--sim", type=Path, required=True,
+                   help="a simulated data set of the model's learned part (train, val)")
+
+
 def cmd_centres(args) -> int:
     from .centres import CentreConfig, fit
     from .paths import resolve_model
@@ -1059,10 +1067,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("head", help="train a label head for a model on labelled simulated "
                                     "scenes (the loop's OUT/sim)")
-    p.add_argument("--model", type=Path, required=True,
-                   help="a checkpoint (the loop's OUT/encoder/best.pt) or model.pt")
-    p.add_argument("--sim", type=Path, required=True,
-                   help="a simulated data set of the model's learned part (train, val)")
+    _model_and_piles(p)
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--iterations", type=int, default=1000, help="(1000)")
     p.add_argument("--width", type=int, default=8, help="channels at 64 x 64 (8)")
@@ -1081,10 +1086,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("centres", help="train centre votes for a model on labelled simulated "
                                        "scenes (the loop's OUT/sim)")
-    p.add_argument("--model", type=Path, required=True,
-                   help="a checkpoint (the loop's OUT/encoder/best.pt) or model.pt")
-    p.add_argument("--sim", type=Path, required=True,
-                   help="a simulated data set of the model's learned part (train, val)")
+    _model_and_piles(p)
     p.add_argument("--out", type=Path, required=True,
                    help="output folder; a killed run started again resumes from its last.pt")
     p.add_argument("--iterations", type=int, default=3000, help="(3000)")

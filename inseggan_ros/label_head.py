@@ -56,14 +56,21 @@ class HeadConfig:
     shift_jitter: float = 0.0
 
     def __post_init__(self):
-        for key in ("width", "iterations", "batch", "eval_every"):
-            if getattr(self, key) < 1:
-                raise ValueError(f"{key} {getattr(self, key)!r} invalid; valid: >= 1")
-        if not 0 < self.lr < 1:
-            raise ValueError(f"lr {self.lr!r} invalid; valid: in (0, 1)")
+        check_training(self)
         for key in ("scale_jitter", "shift_jitter"):
             if not getattr(self, key) >= 0:
                 raise ValueError(f"{key} {getattr(self, key)!r} invalid; valid: >= 0")
+
+
+def check_training(cfg) -> None:
+    """Raises ValueError naming a bad count (width, iterations, batch, eval_every: >= 1) or
+    learning rate (in (0, 1)) of a small network's training settings (`HeadConfig`,
+    `centres.CentreConfig`)."""
+    for key in ("width", "iterations", "batch", "eval_every"):
+        if getattr(cfg, key) < 1:
+            raise ValueError(f"{key} {getattr(cfg, key)!r} invalid; valid: >= 1")
+    if not 0 < cfg.lr < 1:
+        raise ValueError(f"lr {cfg.lr!r} invalid; valid: in (0, 1)")
 
 
 def _block(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
@@ -288,13 +295,13 @@ def save_head(head: LabelHead, path) -> Path:
 
 def head_state(head: LabelHead) -> dict:
     """What a checkpoint stores of a head (its "label_head" entry)."""
-    return {"width": head.width, "state_dict": head.state_dict()}
+    from .checkpoint import width_state
+    return width_state(head)
 
 
 def head_from_state(state: dict) -> LabelHead:
-    head = LabelHead(int(state["width"]))
-    head.load_state_dict(state["state_dict"])
-    return head.eval()
+    from .checkpoint import from_width_state
+    return from_width_state(LabelHead, state)
 
 
 def fit(model, sim, out, cfg: HeadConfig = HeadConfig(), tau: float | None = None,

@@ -72,14 +72,17 @@ def test_settings_and_loop_refuse_what_cannot_work(tmp):
         LoopConfig(centre_iterations=-1)
     with pytest.raises(ValueError, match="at most one above 0"):
         LoopConfig(centre_iterations=10, head_iterations=10)
-    with pytest.raises(ValueError, match="lr 0 invalid"):
+    with pytest.raises(ValueError, match="lr 0 invalid; valid: in"):
         CentreConfig(lr=0)
-    state = checkpoint.load("models/cylinder/model.pt")
-    state["inference"] = {**state["inference"], "centre_votes": "on"}
-    checkpoint.save(tmp / "m.pt", {k: v for k, v in state.items() if k != "format"})
+    with pytest.raises(ValueError, match="batch 0 invalid; valid: >= 1"):
+        CentreConfig(batch=0)
+    state = checkpoint.load("models/cylinder/model.pt")  # shipped with centre votes, on
+    assert state["inference"]["centre_votes"] == "on"
+    checkpoint.save(tmp / "m.pt", {k: v for k, v in state.items()
+                                   if k not in ("format", "centre_net")})
     with pytest.raises(checkpoint.CheckpointError, match="centre-vote network it does not have"):
         Segmenter.from_checkpoint(tmp / "m.pt")
-    seg = Segmenter.from_checkpoint("models/cylinder/model.pt", device="cpu")
+    seg = Segmenter.from_checkpoint("models/cone/model.pt", device="cpu")  # has none
     with pytest.raises(ValueError, match="no centre-vote network"):
         seg.check(replace(seg.inference, centre_votes="on"))
     x = np.full((1, 1, 64, 64), -1.0, np.float32)

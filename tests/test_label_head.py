@@ -49,7 +49,7 @@ def test_label_head_on_needs_a_model_with_a_head(tmp):
     with pytest.raises(ValueError, match="label_head 'maybe' invalid; valid: on, off"):
         InferenceConfig(label_head="maybe")
     state = checkpoint.load(resolve_model("cylinder"))
-    state["inference"] = {**state["inference"], "label_head": "on"}
+    state["inference"] = {**state["inference"], "label_head": "on", "centre_votes": "off"}
     state.pop("label_head", None)
     checkpoint.save(tmp / "bad.pt", state)
     with pytest.raises(checkpoint.CheckpointError, match="label head it does not have"):
@@ -58,7 +58,8 @@ def test_label_head_on_needs_a_model_with_a_head(tmp):
     if seg.label_head is None:
         x = np.full((1, 1, 64, 64), -1, np.float32)
         with pytest.raises(ValueError, match="no label head"):
-            seg.segment_batch(x, settings=replace(seg.inference, label_head="on"))
+            seg.segment_batch(x, settings=replace(seg.inference, label_head="on",
+                                                  centre_votes="off"))
 
 
 def _held_out_loss(head, args, targets) -> float:
