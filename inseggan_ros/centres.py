@@ -305,7 +305,7 @@ def fit(model, sim, out, cfg: CentreConfig = CentreConfig(), frames: int | None 
     summary = train_net(splits["train"], splits["val"], n, out, cfg, progress)
     net = net_from_state(torch.load(out / "net.pt", weights_only=True))
     inference = replace(InferenceConfig.from_dict(state.get("inference", {})),
-                        centre_votes="on")
+                        centre_votes="on", label_head="off")  # the votes instead of a head
     keep = {k: v for k, v in state.items() if k not in ("format", "optimizers", "rng")}
     keep.update(centre_net={**net_state(net), "sim": str(sim),
                             "summary": {k: v for k, v in summary.items() if k != "history"}},

@@ -324,7 +324,8 @@ def fit(model, sim, out, cfg: HeadConfig = HeadConfig(), tau: float | None = Non
     out = Path(out)
     state = checkpoint.load(model)
     seg = Segmenter.from_checkpoint(model, device="cpu", tau=tau)
-    seg.inference = replace(seg.inference, label_head="off")  # proposals: the z-buffer's
+    seg.inference = replace(seg.inference, label_head="off",  # proposals: the z-buffer's
+                            centre_votes="off")
     splits = {}
     for split in ("train", "val"):
         d = load_sim_split(sim, split, seg.prep_cfg, limit=frames, progress=progress,
@@ -340,7 +341,8 @@ def fit(model, sim, out, cfg: HeadConfig = HeadConfig(), tau: float | None = Non
                          f"{seg.model_cfg.renderer} renderer has none")
     summary = train_head(seg.G, seg.tau, splits["train"], splits["val"], out, cfg, progress)
     head = head_from_state(torch.load(out / "head.pt", weights_only=True))
-    inference = replace(InferenceConfig.from_dict(state.get("inference", {})), label_head="on")
+    inference = replace(InferenceConfig.from_dict(state.get("inference", {})), label_head="on",
+                        centre_votes="off")  # the head's labels instead of the votes
     keep = {k: v for k, v in state.items() if k not in ("format", "optimizers", "rng")}
     keep.update(tau=seg.tau, label_head={**head_state(head), "tau": seg.tau,
                                          "sim": str(sim), "summary": summary},

@@ -101,10 +101,18 @@ def cylinder_bag():
 
     torch.set_num_threads(1)
     seg = Segmenter.from_checkpoint(REPO / "models" / "cylinder" / "model.pt", device="cpu")
-    # the z-buffer's labels: the vote and the split that these tests check are made for them
-    # (over centre votes there is no vote; their own tests: test_centres.py)
-    seg.inference = replace(seg.inference, centre_votes="off")
+    seg.inference = zbuffer_settings(seg.inference)
     return seg, data.load_bag(BAGS / "cylinder_sim", seg.prep_cfg)
+
+
+def zbuffer_settings(cfg):
+    """realtime.yaml over a model's settings, with the z-buffer's labels (`centre_votes: off`):
+    what the shipped cylinder ran before its centre votes, for the tests of what comes after
+    the z-buffer (tau, the vote, the split; over centre votes there is no vote, and one
+    starting point: their own tests are test_centres.py)."""
+    from inseggan_ros import settings
+
+    return replace(settings.apply_file(cfg, "realtime"), centre_votes="off")
 
 
 @pytest.fixture(scope="session")

@@ -8,7 +8,7 @@ from dataclasses import replace
 
 import pytest
 import torch
-from conftest import BAGS, REPO, run_cli
+from conftest import BAGS, REPO, run_cli, zbuffer_settings
 
 from inseggan_ros import bags, checkpoint, data, evaluate, selfcheck
 from inseggan_ros.metrics import mean_miou
@@ -53,6 +53,7 @@ def test_tau_from_frames_lands_near_the_labelled_calibration():
     from inseggan_ros.segment import TAU_GRID, calibrate_tau  # labelled calibration, its grid
 
     seg = Segmenter.from_checkpoint(MODEL, device="cpu")
+    seg.inference = zbuffer_settings(seg.inference)  # tau is for the z-buffer's labels
     frames = data.load_bag(SAMPLE_BAG, seg.prep_cfg)
     assert frames["labels"] is not None
     renders = seg.segment_batch(frames["x"], frames["fg"])["renders"]
