@@ -516,8 +516,8 @@ def _settings_text(d: dict) -> str:
     head = ", labels from the label head" if cfg.label_head == "on" else ""
     if cfg.centre_votes == "on":
         head = ", instances from the centre votes"
-    vote = (f", then voted within depth superpixels (scale {cfg.superpixel_scale})"
-            if cfg.superpixel_scale and cfg.centre_votes != "on" else "")
+    vote = (f", then voted within depth superpixels (scale {cfg.vote_scale})"
+            if cfg.vote_scale else "")
     split = (f", missed parts split off along coarse depth segments (scale {cfg.split_scale})"
              if cfg.split_scale else "")
     return (f"{start}{head}, {smooth.iters} smoothing iterations + {smooth.full_res_active} at "

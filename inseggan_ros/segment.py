@@ -39,11 +39,6 @@ from .superpixels import frame_segments, split_labels, vote_labels
 TAU_GRID = tuple(np.round(np.linspace(-0.95, 0.5, 30), 3))
 
 
-def vote_scale(cfg: InferenceConfig) -> int:
-    """The superpixel vote's scale the settings run: none over centre votes (`centres.py`)."""
-    return 0 if cfg.centre_votes == "on" else cfg.superpixel_scale
-
-
 def _median3(x: torch.Tensor) -> torch.Tensor:
     """3x3 median filter of (M, 1, H, W)."""
     patches = F.unfold(F.pad(x, (1, 1, 1, 1), mode="replicate"), 3)
@@ -325,7 +320,7 @@ class Segmenter:
         n = out["renders"].shape[1]
         if isinstance(segments, Future):
             segments = segments.result()
-        labels = vote_labels(out["labels"], x, n, vote_scale(cfg), segments)
+        labels = vote_labels(out["labels"], x, n, cfg.vote_scale, segments)
         labels, cut = split_labels(labels, x, n, cfg.split_scale, segments)
         # a piece cut off another instance has no render to measure its visible share by: 0
         scores = instance_scores(out["renders"], labels, tau).masked_fill(cut, 0.0)
@@ -347,11 +342,11 @@ class Segmenter:
                              f"{self.prep_cfg.max_height} m, {self.prep_cfg.size} px")
         prep = prepare(depth_m, prep_cfg)
         segments = None
-        if self.superpixel_thread and (vote_scale(cfg) > 0 or cfg.split_scale > 0):
+        if self.superpixel_thread and (cfg.vote_scale > 0 or cfg.split_scale > 0):
             if self._pool is None:
                 self._pool = ThreadPoolExecutor(1, thread_name_prefix="superpixels")
             segments = self._pool.submit(lambda: [frame_segments(
-                prep.x, prep.fg, (vote_scale(cfg), cfg.split_scale))])
+                prep.x, prep.fg, (cfg.vote_scale, cfg.split_scale))])
         out = self.segment_batch(prep.x[None, None], fg=prep.fg[None], tau=tau, settings=cfg,
                                  segments=segments)
         labels64 = out["labels"][0].cpu().numpy()

@@ -125,6 +125,12 @@ class InferenceConfig:
             raise ValueError("label_head on and centre_votes on: the labels come from one of "
                              "them; valid: at most one on")
 
+    @property
+    def vote_scale(self) -> int:
+        """The superpixel vote's scale these settings run: none over centre votes (their labels
+        already follow the heights; the vote lowered the cylinder's, docs/experiments.md)."""
+        return 0 if self.centre_votes == "on" else self.superpixel_scale
+
     def to_dict(self) -> dict:
         return {**{f.name: getattr(self, f.name) for f in fields(self) if f.name != "smooth"},
                 "smooth": asdict(self.smooth)}
