@@ -171,10 +171,10 @@ class Segmenter:
     `centre_net`: the model's centre votes (`centres.py`), used where the settings say
     `centre_votes: on`.
 
-    `superpixel_thread`: what depends on the input alone, a frame's two graph segmentations
-    (`superpixels.frame_segments`) and, with centre votes, the centre-vote network's instances,
-    is made in a second thread while the encoder and the renders run in this one; the labels
-    are the same, the frame's latency lower where a second core is free (docs/benchmarks.md)."""
+    `superpixel_thread`: a frame's two graph segmentations (`superpixels.frame_segments`),
+    which depend on the input alone, are made in a second thread while the encoder and the
+    renders run in this one; the labels are the same, the frame's latency lower where a second
+    core is free (docs/benchmarks.md)."""
 
     def __init__(self, G, E, model_cfg, prep_cfg, tau: float, device: str = "cpu",
                  inference: InferenceConfig = InferenceConfig(), label_head=None,
@@ -270,32 +270,20 @@ class Segmenter:
 
     @torch.no_grad()
     def segment_batch(self, x: np.ndarray | torch.Tensor, fg=None, tau: float | None = None,
-                      settings: InferenceConfig | None = None, segments=None,
-                      votes=None) -> dict:
+                      settings: InferenceConfig | None = None, segments=None) -> dict:
         """(B, 1, 64, 64) prepared inputs -> labels (B, 64, 64) uint8, renders, scores, recon.
         `tau` and `settings` override the model's. `segments`: each frame's
-        `superpixels.frame_segments` made beforehand (a list, or a Future of one); `votes`:
-        the centre votes' labels made beforehand (`centre_votes`)."""
+        `superpixels.frame_segments` made beforehand (a list, or a Future of one)."""
         cfg = self.inference if settings is None else settings
         x = torch.as_tensor(x, dtype=torch.float32, device=self.device)
-        out = self.model_labels(x, fg, tau, cfg, votes)
+        out = self.model_labels(x, fg, tau, cfg)
         return self.vote_and_split(out, x, cfg, tau, segments)
-
-    def centre_votes(self, x, fg) -> torch.Tensor:
-        """(B, 1, 64, 64) inputs and (B, 64, 64) foreground -> the centre-vote network's
-        instances (B, 64, 64) uint8, before they are named after the renders. In float32
-        whatever the encoder's arithmetic: in bfloat16 the cone's validation mIoU fell by
-        0.014 (docs/experiments.md, 2026-11-28, night)."""
-        x = torch.as_tensor(x, dtype=torch.float32, device=self.device)
-        fg = torch.as_tensor(fg, device=self.device)
-        return centre_labels(self.centre_net, x, fg, self.model_cfg.n_instances)
 
     @torch.no_grad()
     def model_labels(self, x: np.ndarray | torch.Tensor, fg=None, tau: float | None = None,
-                     settings: InferenceConfig | None = None, votes=None) -> dict:
+                     settings: InferenceConfig | None = None) -> dict:
         """`segment_batch` up to the vote: the z-buffered (or label head's, or centre votes')
-        labels, smoothed, with the renders and the reconstruction. `votes`: `centre_votes`'
-        output made beforehand (a tensor, or a Future of one); made here when None."""
+        labels, smoothed, with the renders and the reconstruction."""
         tau = self.tau if tau is None else float(tau)
         cfg = self.inference if settings is None else settings
         x = torch.as_tensor(x, dtype=torch.float32, device=self.device)
@@ -312,11 +300,10 @@ class Segmenter:
             if self.centre_net is None:
                 raise ValueError("centre_votes on: this model has no centre-vote network; "
                                  "valid: off")
-            if isinstance(votes, Future):
-                votes = votes.result()
-            if votes is None:
-                votes = self.centre_votes(x, fg_t)
-            labels = match_to_renders(votes, labels, out["renders"].shape[1])
+            n = out["renders"].shape[1]
+            # in float32 whatever the encoder's arithmetic: in bfloat16 the cone's validation
+            # mIoU fell by 0.014 (docs/experiments.md, 2026-11-28, night)
+            labels = match_to_renders(centre_labels(self.centre_net, x, fg_t, n), labels, n)
         out["labels"] = smooth_labels(labels, x, out["renders"].shape[1], cfg.smooth)
         return out
 
@@ -354,20 +341,14 @@ class Segmenter:
             raise ValueError("max_height and size are fixed by the model: "
                              f"{self.prep_cfg.max_height} m, {self.prep_cfg.size} px")
         prep = prepare(depth_m, prep_cfg)
-        segments = votes = None
-        if self.superpixel_thread:
+        segments = None
+        if self.superpixel_thread and (cfg.vote_scale > 0 or cfg.split_scale > 0):
             if self._pool is None:
                 self._pool = ThreadPoolExecutor(1, thread_name_prefix="superpixels")
-            # the centre votes first: the encoder's labels wait for them, the superpixels
-            # only after them
-            if cfg.centre_votes == "on" and self.centre_net is not None:
-                votes = self._pool.submit(self.centre_votes, prep.x[None, None],
-                                          prep.fg[None])
-            if cfg.vote_scale > 0 or cfg.split_scale > 0:
-                segments = self._pool.submit(lambda: [frame_segments(
-                    prep.x, prep.fg, (cfg.vote_scale, cfg.split_scale))])
+            segments = self._pool.submit(lambda: [frame_segments(
+                prep.x, prep.fg, (cfg.vote_scale, cfg.split_scale))])
         out = self.segment_batch(prep.x[None, None], fg=prep.fg[None], tau=tau, settings=cfg,
-                                 segments=segments, votes=votes)
+                                 segments=segments)
         labels64 = out["labels"][0].cpu().numpy()
         labels = extend_labels(labels_to_full(labels64, prep), depth_m, prep, prep_cfg)
         labels = smooth_full(labels, depth_m, prep.floor_depth, prep_cfg.max_height,

@@ -2,15 +2,14 @@
 segment held-out piles better than the untrained network, the model it ships, and the settings
 and stages that refuse what cannot work."""
 import json
-import threading
 from dataclasses import replace
 
 import numpy as np
 import pytest
 import torch
 
-from conftest import BAGS, REPO, run_cli
-from inseggan_ros import bags, checkpoint
+from conftest import run_cli
+from inseggan_ros import checkpoint
 from inseggan_ros.centres import (OFFSET_UNIT, CentreConfig, CentreNet, centre_labels, decode,
                                   match_to_renders, miou_of, targets)
 from inseggan_ros.data import load_sim_split
@@ -138,25 +137,3 @@ def test_a_short_training_run_segments_held_out_piles_better_and_ships_in_the_mo
     p = run_cli("centres", "--model", "cylinder", "--sim", sim, "--out", out, "--iterations",
                 "150", "--batch", "4", "--width", "8", "--threads", "1", "--quiet")
     assert p.returncode != 0 and "made with other settings" in p.stderr, p.stderr
-
-
-def test_the_second_thread_gives_centre_votes_the_same_labels():
-    """The shipped cylinder (centre votes on) with `superpixel_thread`, as the node runs it: its
-    centre votes are made in the second thread, and the labels and scores are those of the
-    one-thread path, frame by frame, in and out of turn."""
-    torch.set_num_threads(1)
-    path = REPO / "models" / "cylinder" / "model.pt"
-    one = Segmenter.from_checkpoint(path, device="cpu")
-    two = Segmenter.from_checkpoint(path, device="cpu", superpixel_thread=True)
-    assert two.inference.centre_votes == "on"
-    made_in = []
-    votes = two.centre_votes
-    two.centre_votes = lambda x, fg: made_in.append(threading.current_thread().name) or \
-        votes(x, fg)
-    frames = [f.metres() for f in bags.read_frames(BAGS / "cylinder_sim", limit=4)]
-    for f in frames:
-        a, b = one(f, reconstruction=False), two(f, reconstruction=False)
-        np.testing.assert_array_equal(a.labels, b.labels)
-        np.testing.assert_array_equal(a.scores, b.scores)
-    assert len(made_in) == len(frames)
-    assert all(name.startswith("superpixels") for name in made_in), made_in

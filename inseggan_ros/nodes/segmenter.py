@@ -258,9 +258,9 @@ class SegmenterNode(Node):
             "threads": (1, d("CPU threads for inference (1 leaves the other cores to DDS and "
                              "the rest of the robot)", read_only=True, int_range=(1, 256))),
             "superpixel_thread": (True, d(
-                "make a frame's depth superpixels (superpixel_scale, split_scale) and centre "
-                "votes (centre_votes) in a second thread while the encoder runs: the same "
-                "labels, sooner where a second core is free", read_only=True)),
+                "make a frame's depth superpixels (superpixel_scale, split_scale) in a second "
+                "thread while the encoder runs: the same labels, sooner where a second core is "
+                "free", read_only=True)),
             "diagnostics_period": (1.0, d("seconds between /diagnostics messages", read_only=True,
                                           float_range=(0.05, 60.0))),
             "latency_window": (1000, d("frames over which /diagnostics reports latency "
