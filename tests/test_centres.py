@@ -50,6 +50,14 @@ def test_the_targets_decode_to_the_labels_they_came_from():
     one = torch.zeros(1, 64, 64, dtype=torch.uint8)
     one[0, 20:30, 10:50] = 1
     assert decode(_perfect_prediction(one, 5), one > 0, 5).unique().tolist() == [0, 1]
+    # a part with a hole (a nut lying flat): its centre is in the hole, off the foreground,
+    # and it is still found
+    ring = torch.zeros(1, 64, 64, dtype=torch.uint8)
+    ring[0, 10:30, 10:30] = 1
+    ring[0, 15:25, 15:25] = 0
+    ring[0, 40:50, 35:60] = 2
+    decoded = decode(_perfect_prediction(ring, 5), ring > 0, 5)
+    assert miou_of(decoded.numpy(), ring.numpy()) == pytest.approx(1.0)
 
 
 def test_instances_take_the_id_of_the_render_they_overlap_most():
