@@ -498,9 +498,11 @@ def cmd_centres(args) -> int:
     cfg = CentreConfig(width=args.width, iterations=args.iterations, batch=args.batch,
                        lr=args.lr, seed=args.seed, eval_every=min(500, args.iterations))
     summary = fit(resolve_model(str(args.model)), args.sim, args.out, cfg, frames=args.frames,
-                  progress=not args.quiet)
+                  progress=not args.quiet, self_labels=args.self_labels,
+                  held_out=args.held_out)
+    chosen = ("held-out self-labelled frames" if args.self_labels else "simulated scenes")
     print(f"centre votes in {summary['seconds'] / 60:.1f} min: validation mIoU on the "
-          f"simulated scenes {summary['best_val_miou']:.3f}; model with them: "
+          f"{chosen} {summary['best_val_miou']:.3f}; model with them: "
           f"{summary['model']} (centre_votes: on); ship it with `inseggan export --checkpoint` "
           "it, or measure it with `inseggan eval --model` it")
     return 0
@@ -1094,6 +1096,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--batch", type=int, default=32, help="scenes per iteration (32)")
     p.add_argument("--lr", type=float, default=2e-3)
     p.add_argument("--frames", type=int, help="scenes per split at most (default: all)")
+    p.add_argument("--self-labels", action="store_true",
+                   help="--sim is the user's own data set: its training frames labelled by the "
+                        "model itself (no true label read) teach the net, for a part whose "
+                        "learned shape is not the real one")
+    p.add_argument("--held-out", type=int, default=200,
+                   help="with --self-labels: the last training frames kept out to choose the "
+                        "iteration by (200)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--quiet", action="store_true")

@@ -530,7 +530,7 @@ def centres_record(state: dict) -> dict | None:
     if not net:
         return None
     summary = net.get("summary", {})
-    return {"width": net["width"], "sim": net.get("sim"),
+    return {"width": net["width"], "sim": net.get("sim"), "teacher": net.get("teacher", "piles"),
             "iterations": summary.get("config", {}).get("iterations"),
             "train_frames": summary.get("train_frames"),
             "val_frames": summary.get("val_frames"),
@@ -543,12 +543,17 @@ def _centres_line(card: dict) -> list[str]:
     if not c:
         return []
     used = "on" if card["inference"].get("centre_votes") == "on" else "off in these settings"
-    best = c.get("best_val_miou")
+    best = "?" if c.get("best_val_miou") is None else f"{c['best_val_miou']:.3f}"
+    if c.get("teacher") == "self-labels":
+        return [f"* **Centre votes** ({used}): a {c['width']}-wide network taught on "
+                f"{c.get('train_frames')} of the data set's own training frames (`{c.get('sim')}`"
+                "), labelled by this model itself with its centre votes off (no true label "
+                f"read), {c.get('iterations')} iterations; agreement with those labels on "
+                f"{c.get('val_frames')} more frames {best}"]
     return [f"* **Centre votes** ({used}): a {c['width']}-wide network taught on "
             f"{c.get('train_frames')} labelled simulated piles of the learned part "
             f"(`{c.get('sim')}`), {c.get('iterations')} iterations; mIoU on "
-            f"{c.get('val_frames')} more piles "
-            + (f"{best:.3f}" if best is not None else "?")]
+            f"{c.get('val_frames')} more piles {best}"]
 
 
 def _vote_line(card: dict) -> list[str]:
