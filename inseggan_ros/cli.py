@@ -1087,7 +1087,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_head)
 
     p = sub.add_parser("centres", help="train centre votes for a model on labelled simulated "
-                                       "scenes (the loop's OUT/sim)")
+                                       "scenes (the loop's OUT/sim), or on the user's own "
+                                       "frames labelled by the model (--self-labels)")
     _model_and_piles(p)
     p.add_argument("--out", type=Path, required=True,
                    help="output folder; a killed run started again resumes from its last.pt")
