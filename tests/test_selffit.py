@@ -5,7 +5,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import run_cli
+from conftest import run_cli, zbuffer_settings
 
 from inseggan_ros import checkpoint, data
 from inseggan_ros.metrics import mean_miou, miou_batch
@@ -17,9 +17,12 @@ CONE = Path(__file__).resolve().parents[1] / "models" / "cone" / "model.pt"
 
 
 def _agreement(model, x, fg, tau, labels) -> float:
-    """The mIoU of the model's default-settings (real-time) labels against `labels`."""
+    """The mIoU of the encoder's real-time labels (realtime.yaml, the z-buffer's labels: the
+    shipped cone's centre votes do not depend on the encoder) against `labels`."""
     seg = Segmenter.from_checkpoint(model, device="cpu", tau=tau)
-    return float(mean_miou(miou_batch(seg.segment_batch(x, fg)["labels"].numpy(), labels)))
+    settings = zbuffer_settings(seg.inference)
+    return float(mean_miou(miou_batch(seg.segment_batch(x, fg, settings=settings)["labels"]
+                                      .numpy(), labels)))
 
 
 def test_self_fit_teaches_the_encoder_its_slow_labels_and_the_card_says_so(tmp):
