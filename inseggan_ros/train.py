@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import gc
 import json
 import math
 import os
@@ -407,7 +408,9 @@ def train(cfg: TrainConfig, train_data: dict, val_data: dict | None, out: Path,
 
     Under torchrun (WORLD_SIZE > 1) it joins the process group, or opens one, and destroys the
     group it opened before returning: a gloo group left to the interpreter's exit may abort the
-    process ("terminate called without an active exception") while its threads still run.
+    process ("terminate called without an active exception") while its threads still run. The
+    ranks leave together (a barrier after rank 0's last write), and the DDP wrappers, which
+    hold the group too, are collected first, so that nothing keeps it past its destruction.
     """
     import torch.distributed as dist
 
@@ -420,7 +423,9 @@ def train(cfg: TrainConfig, train_data: dict, val_data: dict | None, out: Path,
                       progress)
     finally:
         if opened and dist.is_initialized():
+            gc.collect()  # the DDP wrappers (and their reducers' hold on the group) go now
             dist.destroy_process_group()
+            gc.collect()
 
 
 def _train(cfg, train_data, val_data, out, prep_cfg, data_info, device, resume, progress):
@@ -572,7 +577,6 @@ def _train(cfg, train_data, val_data, out, prep_cfg, data_info, device, resume, 
 
         checksums = [None] * dist.get_world_size()
         dist.all_gather_object(checksums, weights_checksum(run))
-        dist.barrier()  # no rank leaves (and destroys its group) while another still sends
     summary = {"iterations": run.iteration, "seconds": round(elapsed(), 1),
                "images_per_s_this_process": round(seen / max(time.monotonic() - start, 1e-9), 1),
                "best_score": run.best, "tau": run.tau, "resets": run.resets,
@@ -582,4 +586,6 @@ def _train(cfg, train_data, val_data, out, prep_cfg, data_info, device, resume, 
         write_json(out / "summary.json", summary)
         if run.history:
             plot_curves(run.history, out / "curves.png")
+    if distributed:  # no rank leaves (and destroys its group) while another still works
+        dist.barrier()
     return summary
