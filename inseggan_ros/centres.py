@@ -288,7 +288,7 @@ def _plot(history: list, path) -> None:
 
 def fit(model, sim, out, cfg: CentreConfig = CentreConfig(), frames: int | None = None,
         progress: bool = True, as_given: bool = False, self_labels: bool = False,
-        held_out: int = 200) -> dict:
+        held_out: int = 200, workers: int = 1) -> dict:
     """Centre votes for `model` (a checkpoint) from the labelled scenes of the simulated data
     set `sim` (train split to learn from, val split to choose the best iteration), cut as the
     model's preprocessing cuts frames (`as_given`: as a bag's, the bin found in every frame):
@@ -297,10 +297,12 @@ def fit(model, sim, out, cfg: CentreConfig = CentreConfig(), frames: int | None 
 
     With `self_labels`, `sim` is instead the user's own data set: its train split's frames
     (their labels are not read) labelled by the model itself with its own settings (centre
-    votes off), the last `held_out` of them kept out to choose the best iteration by. Where the
+    votes off; in `workers` processes), the last `held_out` of them kept out to choose the best
+    iteration by. Where the
     learned part is not the real one, piles of it teach the net the wrong part (the nut:
     validation 0.805 against the shipped 0.886), its own frames the right one (0.922;
-    docs/experiments.md, 2026-11-29). The labels are cached in out/self_labels.npy."""
+    docs/experiments.md, 2026-11-29). The labels are saved chunk by chunk in
+    out/self_labels.npz, and a killed run resumes them."""
     from dataclasses import replace
 
     from . import checkpoint
@@ -313,7 +315,7 @@ def fit(model, sim, out, cfg: CentreConfig = CentreConfig(), frames: int | None 
     seg = Segmenter.from_checkpoint(model, device="cpu")
     n = seg.model_cfg.n_instances
     if self_labels:
-        splits = _self_labelled(seg, sim, out, frames, held_out, progress)
+        splits = _self_labelled(model, seg, sim, out, frames, held_out, workers, progress)
     else:
         splits = {}
         for split in ("train", "val"):
@@ -336,13 +338,13 @@ def fit(model, sim, out, cfg: CentreConfig = CentreConfig(), frames: int | None 
     return {**summary, "model": str(out / "model.pt")}
 
 
-def _self_labelled(seg, data, out: Path, frames: int | None, held_out: int,
-                   progress: bool) -> dict:
+def _self_labelled(model, seg, data, out: Path, frames: int | None, held_out: int,
+                   workers: int, progress: bool) -> dict:
     """`fit`'s two splits from the user's data set: its train split's frames labelled by the
-    model (its own settings, centre votes off), the last `held_out` kept to choose by."""
-    from dataclasses import replace
-
+    model (its own settings and tau, centre votes off; `selffit.self_labels`, in `workers`
+    processes, resumable from out/self_labels.npz), the last `held_out` kept to choose by."""
     from .data import load_sim_split
+    from .selffit import SelfFitConfig, self_labels
 
     if held_out < 1:
         raise ValueError(f"held_out {held_out} invalid; valid: >= 1")
@@ -350,22 +352,9 @@ def _self_labelled(seg, data, out: Path, frames: int | None, held_out: int,
     if len(train["x"]) <= held_out:
         raise ValueError(f"{data}: {len(train['x'])} training frames; valid: more than the "
                          f"{held_out} held out to choose the iteration by")
-    cache = out / "self_labels.npy"
-    if cache.is_file():
-        labels = np.load(cache)
-        if len(labels) != len(train["x"]):
-            raise ValueError(f"{cache}: labels of {len(labels)} frames, not {len(train['x'])}; "
-                             "valid: the same --frames, or a new output folder")
-    else:
-        cfg = replace(seg.inference, centre_votes="off")
-        labels = np.concatenate([
-            seg.segment_batch(train["x"][i:i + 64], train["fg"][i:i + 64],
-                              settings=cfg)["labels"].numpy()
-            for i in tqdm(range(0, len(train["x"]), 64), desc="self-labels", disable=not progress)])
-        out.mkdir(parents=True, exist_ok=True)
-        with open(out / ".self_labels.npy", "wb") as f:
-            np.save(f, labels)
-        (out / ".self_labels.npy").replace(cache)
+    labels = self_labels(model, train["x"], train["fg"], None, out / "self_labels.npz",
+                         SelfFitConfig(settings="own", workers=workers), progress,
+                         overrides={"centre_votes": "off"})
     k = len(labels) - held_out
     return {"train": {"x": train["x"][:k], "fg": train["fg"][:k], "labels": labels[:k]},
             "val": {"x": train["x"][k:], "fg": train["fg"][k:], "labels": labels[k:]}}

@@ -499,7 +499,7 @@ def cmd_centres(args) -> int:
                        lr=args.lr, seed=args.seed, eval_every=min(500, args.iterations))
     summary = fit(resolve_model(str(args.model)), args.sim, args.out, cfg, frames=args.frames,
                   progress=not args.quiet, self_labels=args.self_labels,
-                  held_out=args.held_out)
+                  held_out=args.held_out, workers=args.threads)
     chosen = ("held-out self-labelled frames" if args.self_labels else "simulated scenes")
     print(f"centre votes in {summary['seconds'] / 60:.1f} min: validation mIoU on the "
           f"{chosen} {summary['best_val_miou']:.3f}; model with them: "
@@ -1105,7 +1105,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --self-labels: the last training frames kept out to choose the "
                         "iteration by (200)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--threads", type=int, default=2,
+                   help="threads to train with, and with --self-labels processes to label "
+                        "with (2)")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_centres)
 

@@ -40,7 +40,8 @@ from tqdm import tqdm
 class SelfFitConfig:
     frames: int = 1500  # of the user's training frames, labelled and fitted to
     iterations: int = 1500  # of the encoder
-    settings: str = "quality"  # the labelling settings: a parameters file or a shipped one's name
+    settings: str = "quality"  # the labelling settings: a parameters file, a shipped one's
+    # name, or "own": the model's stored settings
     lr: float = 3e-4  # cosine schedule down to 0
     label_weight: float = 1.0
     ownership_weight: float = 0.2
@@ -60,29 +61,34 @@ class SelfFitConfig:
 
 
 def check_settings(name: str) -> None:
-    """Raises (naming the file) unless `name` is a readable parameters file or shipped name."""
+    """Raises (naming the file) unless `name` is "own", a readable parameters file or a shipped
+    settings name."""
     from . import settings
     from .paths import resolve_config
 
-    settings.read_params_file(resolve_config(name))
+    if name != "own":
+        settings.read_params_file(resolve_config(name))
 
 
-def _settings(model: Path, name: str, tau: float):
+def _settings(model: Path, name: str, tau: float | None, overrides: dict):
+    from dataclasses import replace
+
     from . import settings
     from .segment import Segmenter
 
     seg = Segmenter.from_checkpoint(model, device="cpu", tau=tau)
-    return seg, settings.apply_file(seg.inference, name, seg.stored_settings)
+    cfg = (seg.inference if name == "own"
+           else settings.apply_file(seg.inference, name, seg.stored_settings))
+    return seg, replace(cfg, **overrides)
 
 
 def _label_chunk(job) -> tuple[int, np.ndarray]:
-    """One worker's chunk: (start, labels (B, 64, 64) uint8)."""
-    model, name, tau, start, x, fg = job
-    torch.set_num_threads(1)
+    """One chunk: (start, labels (B, 64, 64) uint8)."""
+    model, name, tau, overrides, start, x, fg = job
     global _CACHE
-    key = (str(model), name, tau)
+    key = (str(model), name, tau, json.dumps(overrides, sort_keys=True))
     if _CACHE is None or _CACHE[0] != key:  # a worker builds the model once
-        _CACHE = (key, *_settings(Path(model), name, tau))
+        _CACHE = (key, *_settings(Path(model), name, tau, overrides))
     _, seg, cfg = _CACHE
     with torch.no_grad():
         return start, seg.segment_batch(x, fg, settings=cfg)["labels"].cpu().numpy()
@@ -91,16 +97,22 @@ def _label_chunk(job) -> tuple[int, np.ndarray]:
 _CACHE = None
 
 
-def self_labels(model, x: np.ndarray, fg: np.ndarray, tau: float, out_file, cfg: SelfFitConfig,
-                progress: bool = True) -> np.ndarray:
+def self_labels(model, x: np.ndarray, fg: np.ndarray, tau: float | None, out_file,
+                cfg: SelfFitConfig, progress: bool = True,
+                overrides: dict | None = None) -> np.ndarray:
     """(N, 64, 64) uint8 labels of prepared frames x (N, 1, 64, 64) with foreground fg, by the
-    model at `cfg.settings` and `tau`; saved to `out_file` (npz, atomically) after every chunk
-    and resumed from it when it holds the same job's first chunks."""
+    model at `cfg.settings` (then `overrides`, InferenceConfig fields) and `tau` (None: the
+    model's own); saved to `out_file` (npz, atomically) after every chunk and resumed from it
+    when it holds the same job's first chunks."""
     out_file = Path(out_file)
+    out_file.parent.mkdir(parents=True, exist_ok=True)
     n = len(x)
     labels = np.zeros((n, 64, 64), np.uint8)
     done = np.zeros(n, bool)
-    job = {"model": str(model), "settings": cfg.settings, "tau": float(tau), "frames": n}
+    overrides = dict(overrides or {})
+    tau = None if tau is None else float(tau)
+    job = {"model": str(model), "settings": cfg.settings, "tau": tau, "frames": n,
+           **({"overrides": overrides} if overrides else {})}
     if out_file.is_file():
         with np.load(out_file) as saved:
             if json.loads(str(saved["job"])) == job:
@@ -114,13 +126,14 @@ def self_labels(model, x: np.ndarray, fg: np.ndarray, tau: float, out_file, cfg:
         np.savez(tmp, labels=labels, done=done, job=json.dumps(job))
         os.replace(tmp, out_file)
 
-    jobs = ((str(model), cfg.settings, float(tau), s, x[s:s + cfg.chunk], fg[s:s + cfg.chunk])
-            for s in todo)
-    if cfg.workers == 1:
+    jobs = ((str(model), cfg.settings, tau, overrides, s, x[s:s + cfg.chunk],
+             fg[s:s + cfg.chunk]) for s in todo)
+    if cfg.workers == 1:  # in this process, with its threads
         results = map(_label_chunk, jobs)
         pool = None
-    else:  # spawn: a forked torch may hang on the parent's thread pool
-        pool = ProcessPoolExecutor(cfg.workers, mp_context=get_context("spawn"))
+    else:  # spawn: a forked torch may hang on the parent's thread pool; one thread a worker
+        pool = ProcessPoolExecutor(cfg.workers, mp_context=get_context("spawn"),
+                                   initializer=torch.set_num_threads, initargs=(1,))
         results = pool.map(_label_chunk, jobs)
     try:
         for start, lab in results:
