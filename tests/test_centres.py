@@ -90,7 +90,10 @@ def test_settings_and_loop_refuse_what_cannot_work(tmp):
                                    if k not in ("format", "centre_net")})
     with pytest.raises(checkpoint.CheckpointError, match="centre-vote network it does not have"):
         Segmenter.from_checkpoint(tmp / "m.pt")
-    seg = Segmenter.from_checkpoint("models/pin_connector/model.pt", device="cpu")  # has none
+    checkpoint.save(tmp / "none.pt", {**{k: v for k, v in state.items()
+                                         if k not in ("format", "centre_net")},
+                                      "inference": {**state["inference"], "centre_votes": "off"}})
+    seg = Segmenter.from_checkpoint(tmp / "none.pt", device="cpu")  # a model without the net
     with pytest.raises(ValueError, match="no centre-vote network"):
         seg.check(replace(seg.inference, centre_votes="on"))
     x = np.full((1, 1, 64, 64), -1.0, np.float32)
