@@ -295,14 +295,14 @@ def fit(model, sim, out, cfg: CentreConfig = CentreConfig(), frames: int | None 
     out/net.pt, out/summary.json, out/curves.png, and out/model.pt, the model with the net
     and its settings switched to it (`centre_votes: on`). -> the summary, with "model".
 
-    With `self_labels`, `sim` is instead the user's own data set: its train split's frames
-    (their labels are not read) labelled by the model itself with its own settings (centre
-    votes off; in `workers` processes), the last `held_out` of them kept out to choose the best
-    iteration by. Where the
-    learned part is not the real one, piles of it teach the net the wrong part (the nut:
-    validation 0.805 against the shipped 0.886), its own frames the right one (0.922;
-    docs/experiments.md, 2026-11-29). The labels are saved chunk by chunk in
-    out/self_labels.npz, and a killed run resumes them."""
+    With `self_labels`, `sim` is instead the user's own data set (its train split) or
+    recording (a bag: all its frames), whose frames (their labels are not read) are labelled
+    by the model itself with its own settings (centre votes off; in `workers` processes), the
+    last `held_out` of them kept out to choose the best iteration by. Where the learned part
+    is not the real one, piles of it teach the net the wrong part (the nut: validation 0.805
+    against the shipped 0.886), its own frames the right one (0.922; docs/experiments.md,
+    2026-11-29). The labels are saved chunk by chunk in out/self_labels.npz, and a killed run
+    resumes them."""
     from dataclasses import replace
 
     from . import checkpoint
@@ -340,15 +340,24 @@ def fit(model, sim, out, cfg: CentreConfig = CentreConfig(), frames: int | None 
 
 def _self_labelled(model, seg, data, out: Path, frames: int | None, held_out: int,
                    workers: int, progress: bool) -> dict:
-    """`fit`'s two splits from the user's data set: its train split's frames labelled by the
-    model (its own settings and tau, centre votes off; `selffit.self_labels`, in `workers`
-    processes, resumable from out/self_labels.npz), the last `held_out` kept to choose by."""
-    from .data import load_sim_split
+    """`fit`'s two splits from the user's data set's train split (or a recording's frames, all
+    of them), labelled by the model (its own settings and tau, centre votes off;
+    `selffit.self_labels`, in `workers` processes, resumable from out/self_labels.npz), the
+    last `held_out` kept to choose by."""
+    from .bags import BagError
+    from .data import load_bag, load_sim_split
     from .selffit import SelfFitConfig, self_labels
 
     if held_out < 1:
         raise ValueError(f"held_out {held_out} invalid; valid: >= 1")
-    train = load_sim_split(data, "train", seg.prep_cfg, limit=frames, progress=progress)
+    if (Path(data) / "meta.json").is_file():  # a simulated data set: its train split
+        train = load_sim_split(data, "train", seg.prep_cfg, limit=frames, progress=progress)
+    else:  # a recording: every frame, cut as the model cuts a bag's
+        try:
+            train = load_bag(data, seg.prep_cfg, limit=frames, progress=progress)
+        except BagError as e:
+            raise ValueError(f"{data}: neither a simulated data set (no meta.json) nor a "
+                             f"readable recording ({e}); valid: either") from None
     if len(train["x"]) <= held_out:
         raise ValueError(f"{data}: {len(train['x'])} training frames; valid: more than the "
                          f"{held_out} held out to choose the iteration by")

@@ -1098,9 +1098,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lr", type=float, default=2e-3)
     p.add_argument("--frames", type=int, help="scenes per split at most (default: all)")
     p.add_argument("--self-labels", action="store_true",
-                   help="--sim is the user's own data set: its training frames labelled by the "
-                        "model itself (no true label read) teach the net, for a part whose "
-                        "learned shape is not the real one")
+                   help="--sim is the user's own data set (its training frames) or recording "
+                        "(a bag: all its frames), labelled by the model itself (no true label "
+                        "read), to teach the net, for a part whose learned shape is not the "
+                        "real one")
     p.add_argument("--held-out", type=int, default=200,
                    help="with --self-labels: the last training frames kept out to choose the "
                         "iteration by (200)")

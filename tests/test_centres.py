@@ -189,3 +189,34 @@ def test_self_labels_teach_the_net_the_models_own_labels_of_the_users_frames(tmp
     p = run_cli("centres", "--model", "cylinder", "--sim", data, "--self-labels", "--held-out",
                 "56", "--out", tmp / "few", "--iterations", "10", "--quiet")
     assert p.returncode != 0 and "training frames" in p.stderr and "held out" in p.stderr
+
+
+def test_self_labels_from_a_recording_label_all_its_frames(tmp):
+    """`--self-labels` with a recording (a bag) instead of a data set: all its frames, cut as
+    the model cuts a bag's, labelled by the model itself; the last --held-out choose. A folder
+    that is neither a data set nor a bag is refused by name."""
+    from inseggan_ros.data import load_bag
+    from inseggan_ros.modelcard import centres_record
+
+    bag = tmp / "bag"
+    run_cli("simulate-bag", "--quiet", "--object", "cylinder", "--count", "16", "--seed", "5",
+            "--out", bag, check=True, timeout=600)
+    out = tmp / "self"
+    run_cli("centres", "--model", "cylinder", "--sim", bag, "--self-labels", "--held-out", "4",
+            "--out", out, "--iterations", "20", "--batch", "4", "--width", "8", "--threads", "1",
+            "--quiet", check=True, timeout=600)
+    seg = Segmenter.from_checkpoint(out / "model.pt", device="cpu")
+    frames = load_bag(bag, seg.prep_cfg)
+    with np.load(out / "self_labels.npz") as saved:
+        assert saved["done"].all() and len(saved["labels"]) == 16
+        cached = saved["labels"]
+    own = seg.segment_batch(frames["x"], frames["fg"], settings=replace(
+        seg.inference, centre_votes="off", encoder_precision="float32"))["labels"].numpy()
+    assert miou_of(cached, own) > 0.98
+    record = centres_record(checkpoint.load(out / "model.pt"))
+    assert record["teacher"] == "self-labels" and record["train_frames"] == 12
+    (tmp / "empty").mkdir()
+    p = run_cli("centres", "--model", "cylinder", "--sim", tmp / "empty", "--self-labels",
+                "--out", tmp / "none", "--iterations", "10", "--quiet")
+    assert p.returncode != 0 and str(tmp / "empty") in p.stderr, p.stderr
+    assert "meta.json" in p.stderr and "recording" in p.stderr, p.stderr
