@@ -288,7 +288,7 @@ def _plot(history: list, path) -> None:
 
 def fit(model, sim, out, cfg: CentreConfig = CentreConfig(), frames: int | None = None,
         progress: bool = True, as_given: bool = False, self_labels: bool = False,
-        held_out: int = 200, workers: int = 1) -> dict:
+        held_out: int = 200, workers: int = 1, user_frames: dict | None = None) -> dict:
     """Centre votes for `model` (a checkpoint) from the labelled scenes of the simulated data
     set `sim` (train split to learn from, val split to choose the best iteration), cut as the
     model's preprocessing cuts frames (`as_given`: as a bag's, the bin found in every frame):
@@ -302,7 +302,9 @@ def fit(model, sim, out, cfg: CentreConfig = CentreConfig(), frames: int | None 
     is not the real one, piles of it teach the net the wrong part (the nut: validation 0.805
     against the shipped 0.886), its own frames the right one (0.922; docs/experiments.md,
     2026-11-29). The labels are saved chunk by chunk in out/self_labels.npz, and a killed run
-    resumes them."""
+    resumes them. `user_frames` ({x, fg}, cut as the model cuts them), where given, are those
+    frames instead of `sim`'s (which then only names them: the loop's bag frames before its
+    held-out cut)."""
     from dataclasses import replace
 
     from . import checkpoint
@@ -315,7 +317,8 @@ def fit(model, sim, out, cfg: CentreConfig = CentreConfig(), frames: int | None 
     seg = Segmenter.from_checkpoint(model, device="cpu")
     n = seg.model_cfg.n_instances
     if self_labels:
-        splits = _self_labelled(model, seg, sim, out, frames, held_out, workers, progress)
+        splits = _self_labelled(model, seg, sim, out, frames, held_out, workers, progress,
+                                user_frames)
     else:
         splits = {}
         for split in ("train", "val"):
@@ -339,7 +342,7 @@ def fit(model, sim, out, cfg: CentreConfig = CentreConfig(), frames: int | None 
 
 
 def _self_labelled(model, seg, data, out: Path, frames: int | None, held_out: int,
-                   workers: int, progress: bool) -> dict:
+                   workers: int, progress: bool, given: dict | None = None) -> dict:
     """`fit`'s two splits from the user's data set's train split (or a recording's frames, all
     of them), labelled by the model (its own settings and tau, centre votes off;
     `selffit.self_labels`, in `workers` processes, resumable from out/self_labels.npz), the
@@ -350,7 +353,9 @@ def _self_labelled(model, seg, data, out: Path, frames: int | None, held_out: in
 
     if held_out < 1:
         raise ValueError(f"held_out {held_out} invalid; valid: >= 1")
-    if (Path(data) / "meta.json").is_file():  # a simulated data set: its train split
+    if given is not None:
+        train = {k: given[k][:frames] for k in ("x", "fg")}
+    elif (Path(data) / "meta.json").is_file():  # a simulated data set: its train split
         train = load_sim_split(data, "train", seg.prep_cfg, limit=frames, progress=progress)
     else:  # a recording: every frame, cut as the model cuts a bag's
         try:

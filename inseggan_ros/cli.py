@@ -412,6 +412,7 @@ def cmd_loop(args) -> int:
                      lr=args.lr, seed=args.seed, workers=args.workers, name=args.name,
                      user_weight=args.user_weight, head_iterations=args.head_iterations,
                      centre_iterations=args.centre_iterations,
+                     centre_teacher=args.centre_teacher,
                      self_frames=args.self_frames, self_iterations=args.self_iterations,
                      self_settings=args.self_settings, export_settings=args.export_settings,
                      size_by_thickness=args.size_by_thickness, size_rounds=args.size_rounds,
@@ -1005,6 +1006,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also train centre votes (`inseggan centres`) on the same piles for "
                         "this many iterations and ship the model with them on (0, the "
                         "default: none)")
+    p.add_argument("--centre-teacher", choices=("piles", "self-labels"), default="piles",
+                   help="what teaches the centre votes: the same piles' labels (piles, the "
+                        "default), or the user's training frames labelled by the model itself "
+                        "(self-labels; no label read; better where the learned shape is not "
+                        "the real part's: docs/experiments.md, 2026-11-29)")
     p.add_argument("--self-frames", type=int, default=0,
                    help="then fit the encoder further to the model's own labels (at "
                         "--self-settings) of this many of the user's training frames, no label "

@@ -44,7 +44,9 @@ resumes from its last checkpoint; the export writes its folder atomically):
      `self_settings`, of the user's training frames (`selffit.py`; no label read) ->
      out/self/last.pt;
   4b. centres (only with `centre_iterations`): centre votes (`centres.py`) taught on the same
-     piles; the model with them (`centre_votes: on`) is out/centres/model.pt;
+     piles; the model with them (`centre_votes: on`) is out/centres/model.pt; or, with
+     `centre_teacher` "self-labels", taught on the user's training frames labelled by the
+     model itself (out/centres_self/model.pt);
   5. export: out/model with the shipped settings (`export_settings`, realtime.yaml), the
      superpixel vote's scale chosen on the last piles' validation split (`vote_scales`,
      `vote_scale.py`: the piles' labels are the loop's own), tau and the card from the user's
@@ -92,6 +94,9 @@ class LoopConfig:
     head_iterations: int = 0  # of a label head on the same scenes (0 = none; it helped the
     # cone and hurt the pin connector: docs/experiments.md)
     centre_iterations: int = 0  # of centre votes on the same scenes (`centres.py`; 0 = none)
+    centre_teacher: str = "piles"  # what teaches them: "piles", the same scenes' labels; or
+    # "self-labels", the user's training frames labelled by the model itself (no label read;
+    # better where the learned part is not the real one: docs/experiments.md, 2026-11-29)
     seed: int = 11  # of the simulated scenes
     workers: int = 1  # simulation processes (and self-labelling processes)
     name: str = "model"  # the exported model's name
@@ -145,6 +150,9 @@ class LoopConfig:
         if self.centre_iterations < 0:
             raise ValueError(f"centre_iterations {self.centre_iterations!r} invalid; valid: "
                              ">= 0 (0 = no centre votes)")
+        if self.centre_teacher not in ("piles", "self-labels"):
+            raise ValueError(f"centre_teacher {self.centre_teacher!r} invalid; valid: piles, "
+                             "self-labels")
         if self.centre_iterations and self.head_iterations:
             raise ValueError("head_iterations and centre_iterations both set: the labels come "
                              "from one of them; valid: at most one above 0")
@@ -314,19 +322,33 @@ def label_head_stage(model: Path, sim: Path, data, out: Path, cfg: LoopConfig,
                     as_given=isinstance(data, BagFrames))["model"])
 
 
-def centres_stage(model: Path, sim: Path, view: dict, out: Path, cfg: LoopConfig,
+def centres_stage(model: Path, sim: Path, view: dict, data, out: Path, cfg: LoopConfig,
                   progress: bool = True) -> Path:
     """Stage 4b: centre votes (`centres.fit`) for the model on the last simulated piles, cut
-    as the user's frames are (`view`) -> out/model.pt. A killed run resumes from out/last.pt;
-    skipped when out/model.pt exists."""
+    as the user's frames are (`view`), or with `cfg.centre_teacher` "self-labels" on the user's
+    training frames (a data set's train split, a bag's frames before the held-out cut)
+    labelled by the model itself, the last fifth of them (at most 200) kept to choose by ->
+    out/model.pt. A killed run resumes from out/last.pt; skipped when out/model.pt exists."""
     from .centres import CentreConfig, fit
 
     if (out / "model.pt").is_file():
         return out / "model.pt"
     ccfg = CentreConfig(iterations=cfg.centre_iterations, seed=cfg.seed,
                         eval_every=max(1, min(500, cfg.centre_iterations)))
-    return Path(fit(model, sim, out, ccfg, progress=progress,
-                    as_given=view.get("as_given", False))["model"])
+    if cfg.centre_teacher == "piles":
+        return Path(fit(model, sim, out, ccfg, progress=progress,
+                        as_given=view.get("as_given", False))["model"])
+    from . import data as data_mod
+    from .segment import Segmenter
+
+    prep = Segmenter.from_checkpoint(model, device="cpu").prep_cfg
+    if isinstance(data, BagFrames):
+        frames, source = data.frames(prep)[0], data.path
+    else:
+        frames, source = data_mod.load_sim_split(data, "train", prep, progress=progress), data
+    held_out = max(1, min(200, len(frames["x"]) // 5))
+    return Path(fit(model, source, out, ccfg, progress=progress, self_labels=True,
+                    held_out=held_out, workers=cfg.workers, user_frames=frames)["model"])
 
 
 def self_stage(model: Path, data, out: Path, cfg: LoopConfig, progress: bool = True) -> Path:
@@ -674,7 +696,8 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
         stages.update(1)
     if cfg.centre_iterations:
         t0 = time.monotonic()
-        finished = centres_stage(finished, sim, view, out / "centres", cfg, progress)
+        folder = "centres" if cfg.centre_teacher == "piles" else "centres_self"
+        finished = centres_stage(finished, sim, view, data, out / folder, cfg, progress)
         seconds["centres"] = round(time.monotonic() - t0, 1)
         stages.update(1)
 

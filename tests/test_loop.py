@@ -102,6 +102,19 @@ def test_a_tiny_loop_explains_held_out_scenes_of_its_shape_better_than_its_start
     assert again["vote_scale"]["note"] == "no vote over centre votes"
     assert "superpixel vote: not chosen (no vote over centre votes)" in p.stdout
     assert "instances from the centre votes" in (out / "model" / "README.md").read_text()
+    # taught instead on the user's 8 training frames labelled by the model itself (1 held out)
+    p = run_cli(*args, "--self-frames", "8", "--self-iterations", "10", "--centre-iterations",
+                "20", "--centre-teacher", "self-labels", check=True, timeout=900)
+    again = json.loads((out / "summary.json").read_text())
+    assert list(again["seconds"]) == ["simulate", "encoder", "self", "centres", "export"], again
+    shipped = checkpoint.load(out / "model" / "model.pt")
+    assert shipped["centre_net"]["teacher"] == "self-labels"
+    assert shipped["centre_net"]["sim"] == str(user)
+    assert shipped["inference"]["centre_votes"] == "on"
+    assert shipped["centre_net"]["summary"]["train_frames"] == 7
+    with np.load(out / "centres_self" / "self_labels.npz") as saved:
+        assert saved["done"].all() and len(saved["labels"]) == 8
+    assert "labelled by this model itself" in (out / "model" / "README.md").read_text()
     # without a model the loop's first stage learns the shape from the data set's training
     # frames (here for 2 iterations; from a bag, the test below)
     from inseggan_ros.loop import learn_shape
