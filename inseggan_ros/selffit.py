@@ -70,7 +70,7 @@ def check_settings(name: str) -> None:
         settings.read_params_file(resolve_config(name))
 
 
-def _settings(model: Path, name: str, tau: float | None, overrides: dict):
+def _settings(model: Path, name: str, tau: float | None, overrides: dict | None = None):
     from dataclasses import replace
 
     from . import settings
@@ -79,7 +79,7 @@ def _settings(model: Path, name: str, tau: float | None, overrides: dict):
     seg = Segmenter.from_checkpoint(model, device="cpu", tau=tau)
     cfg = (seg.inference if name == "own"
            else settings.apply_file(seg.inference, name, seg.stored_settings))
-    return seg, replace(cfg, **overrides)
+    return seg, replace(cfg, **(overrides or {}))
 
 
 def _label_chunk(job) -> tuple[int, np.ndarray]:
