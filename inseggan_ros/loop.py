@@ -338,14 +338,11 @@ def centres_stage(model: Path, sim: Path, view: dict, data, out: Path, cfg: Loop
     if cfg.centre_teacher == "piles":
         return Path(fit(model, sim, out, ccfg, progress=progress,
                         as_given=view.get("as_given", False))["model"])
-    from . import data as data_mod
     from .segment import Segmenter
 
     prep = Segmenter.from_checkpoint(model, device="cpu").prep_cfg
-    if isinstance(data, BagFrames):
-        frames, source = data.frames(prep)[0], data.path
-    else:
-        frames, source = data_mod.load_sim_split(data, "train", prep, progress=progress), data
+    frames = _user_frames(data, prep, "train", None, progress)
+    source = data.path if isinstance(data, BagFrames) else data
     held_out = max(1, min(200, len(frames["x"]) // 5))
     return Path(fit(model, source, out, ccfg, progress=progress, self_labels=True,
                     held_out=held_out, workers=cfg.workers, user_frames=frames)["model"])
@@ -472,14 +469,14 @@ def _simulate_and_fit(file: Path, data, meta: dict | None, view: dict, sim: Path
     return encoder / "best.pt"
 
 
-def _user_frames(data, prep, split: str, limit: int) -> dict:
-    """Up to `limit` of the user's frames that are not the card's, spread evenly: a bag's
-    frames before its held-out cut, or a data set's `split`."""
+def _user_frames(data, prep, split: str, limit: int | None, progress: bool = False) -> dict:
+    """Up to `limit` (None: all) of the user's frames that are not the card's, spread evenly:
+    a bag's frames before its held-out cut, or a data set's `split`."""
     from . import data as data_mod
 
     if isinstance(data, BagFrames):
         return data.frames(prep, limit=limit)[0]
-    return data_mod.load_sim_split(data, split, prep, limit=limit)
+    return data_mod.load_sim_split(data, split, prep, limit=limit, progress=progress)
 
 
 def size_plan(cfg: LoopConfig, learns: bool, renderer: str) -> tuple[str, int]:
