@@ -56,6 +56,9 @@ class CentreConfig:
     def __post_init__(self):
         from .label_head import check_training
         check_training(self)
+        if self.iterations < 4:  # fewer leave the one-cycle schedule a phase of no steps
+            raise ValueError(f"iterations {self.iterations!r} invalid; valid: >= 4 (a warm-up "
+                             "and a decay)")
 
 
 def _block(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
@@ -288,7 +291,8 @@ def _plot(history: list, path) -> None:
 
 def fit(model, sim, out, cfg: CentreConfig = CentreConfig(), frames: int | None = None,
         progress: bool = True, as_given: bool = False, self_labels: bool = False,
-        held_out: int = 200, workers: int = 1, user_frames: dict | None = None) -> dict:
+        held_out: int = 200, workers: int = 1, user_frames: dict | None = None,
+        teacher_votes: bool = False) -> dict:
     """Centre votes for `model` (a checkpoint) from the labelled scenes of the simulated data
     set `sim` (train split to learn from, val split to choose the best iteration), cut as the
     model's preprocessing cuts frames (`as_given`: as a bag's, the bin found in every frame):
@@ -297,8 +301,9 @@ def fit(model, sim, out, cfg: CentreConfig = CentreConfig(), frames: int | None 
 
     With `self_labels`, `sim` is instead the user's own data set (its train split) or
     recording (a bag: all its frames), whose frames (their labels are not read) are labelled
-    by the model itself with its own settings (centre votes off; in `workers` processes), the
-    last `held_out` of them kept out to choose the best iteration by. Where the learned part
+    by the model itself with its own settings (centre votes off, or with `teacher_votes` on:
+    the model as it ships, its own net the teacher; in `workers` processes), the last
+    `held_out` of them kept out to choose the best iteration by. Where the learned part
     is not the real one, piles of it teach the net the wrong part (the nut: validation 0.805
     against the shipped 0.886), its own frames the right one (0.922; docs/experiments.md,
     2026-11-29). The labels are saved chunk by chunk in out/self_labels.npz, and a killed run
@@ -316,9 +321,15 @@ def fit(model, sim, out, cfg: CentreConfig = CentreConfig(), frames: int | None 
     state = checkpoint.load(model)
     seg = Segmenter.from_checkpoint(model, device="cpu")
     n = seg.model_cfg.n_instances
+    if teacher_votes and not self_labels:
+        raise ValueError("teacher_votes: only with self-labels (piles carry their own labels)")
+    if teacher_votes and seg.centre_net is None:
+        raise ValueError(f"{model}: no centre-vote network to label with (teacher_votes); "
+                         "valid: a model with centre votes (`inseggan centres` makes one), or "
+                         "teacher_votes off")
     if self_labels:
         splits = _self_labelled(model, seg, sim, out, frames, held_out, workers, progress,
-                                user_frames)
+                                user_frames, teacher_votes)
     else:
         splits = {}
         for split in ("train", "val"):
@@ -334,7 +345,8 @@ def fit(model, sim, out, cfg: CentreConfig = CentreConfig(), frames: int | None 
                         centre_votes="on", label_head="off")  # the votes instead of a head
     keep = {k: v for k, v in state.items() if k not in ("format", "optimizers", "rng")}
     keep.update(centre_net={**net_state(net), "sim": str(sim),
-                            "teacher": "self-labels" if self_labels else "piles",
+                            "teacher": ("self-labels" if self_labels else "piles")
+                            + (" with its centre votes" if teacher_votes else ""),
                             "summary": {k: v for k, v in summary.items() if k != "history"}},
                 inference=inference.to_dict())
     checkpoint.save(out / "model.pt", keep)
@@ -342,9 +354,11 @@ def fit(model, sim, out, cfg: CentreConfig = CentreConfig(), frames: int | None 
 
 
 def _self_labelled(model, seg, data, out: Path, frames: int | None, held_out: int,
-                   workers: int, progress: bool, given: dict | None = None) -> dict:
+                   workers: int, progress: bool, given: dict | None = None,
+                   teacher_votes: bool = False) -> dict:
     """`fit`'s two splits from the user's data set's train split (or a recording's frames, all
-    of them), labelled by the model (its own settings and tau, centre votes off;
+    of them), labelled by the model (its own settings and tau, centre votes off unless
+    `teacher_votes`;
     `selffit.self_labels`, in `workers` processes, resumable from out/self_labels.npz), the
     last `held_out` kept to choose by."""
     from .bags import BagError
@@ -368,7 +382,7 @@ def _self_labelled(model, seg, data, out: Path, frames: int | None, held_out: in
                          f"{held_out} held out to choose the iteration by")
     labels = self_labels(model, train["x"], train["fg"], None, out / "self_labels.npz",
                          SelfFitConfig(settings="own", workers=workers), progress,
-                         overrides={"centre_votes": "off"})
+                         overrides={"centre_votes": "on" if teacher_votes else "off"})
     k = len(labels) - held_out
     return {"train": {"x": train["x"][:k], "fg": train["fg"][:k], "labels": labels[:k]},
             "val": {"x": train["x"][k:], "fg": train["fg"][k:], "labels": labels[k:]}}

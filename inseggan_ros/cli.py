@@ -500,7 +500,8 @@ def cmd_centres(args) -> int:
                        lr=args.lr, seed=args.seed, eval_every=min(500, args.iterations))
     summary = fit(resolve_model(str(args.model)), args.sim, args.out, cfg, frames=args.frames,
                   progress=not args.quiet, self_labels=args.self_labels,
-                  held_out=args.held_out, workers=args.threads)
+                  held_out=args.held_out, workers=args.threads,
+                  teacher_votes=args.teacher_centre_votes)
     chosen = ("held-out self-labelled frames" if args.self_labels else "simulated scenes")
     print(f"centre votes in {summary['seconds'] / 60:.1f} min: validation mIoU on the "
           f"{chosen} {summary['best_val_miou']:.3f}; model with them: "
@@ -1111,6 +1112,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--held-out", type=int, default=200,
                    help="with --self-labels: the last training frames kept out to choose the "
                         "iteration by (200)")
+    p.add_argument("--teacher-centre-votes", action="store_true",
+                   help="with --self-labels: the model labels with its own centre votes on "
+                        "(the model as it ships; it must have them), not the z-buffer's "
+                        "labels: a second round, or a net taught on piles as the teacher")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=2,
                    help="threads to train with, and with --self-labels processes to label "

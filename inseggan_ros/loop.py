@@ -147,9 +147,9 @@ class LoopConfig:
         if self.head_iterations < 0:
             raise ValueError(f"head_iterations {self.head_iterations!r} invalid; valid: >= 0 "
                              "(0 = no label head)")
-        if self.centre_iterations < 0:
+        if self.centre_iterations < 0 or 0 < self.centre_iterations < 4:
             raise ValueError(f"centre_iterations {self.centre_iterations!r} invalid; valid: "
-                             ">= 0 (0 = no centre votes)")
+                             "0 (no centre votes) or >= 4")
         if self.centre_teacher not in ("piles", "self-labels"):
             raise ValueError(f"centre_teacher {self.centre_teacher!r} invalid; valid: piles, "
                              "self-labels")

@@ -544,10 +544,11 @@ def _centres_line(card: dict) -> list[str]:
         return []
     used = "on" if card["inference"].get("centre_votes") == "on" else "off in these settings"
     best = "?" if c.get("best_val_miou") is None else f"{c['best_val_miou']:.3f}"
-    if c.get("teacher") == "self-labels":
+    if str(c.get("teacher")).startswith("self-labels"):
+        votes = "on" if c["teacher"].endswith("centre votes") else "off"
         return [f"* **Centre votes** ({used}): a {c['width']}-wide network taught on "
                 f"{c.get('train_frames')} of the data set's own training frames (`{c.get('sim')}`"
-                "), labelled by this model itself with its centre votes off (no true label "
+                f"), labelled by this model itself with its centre votes {votes} (no true label "
                 f"read), {c.get('iterations')} iterations; agreement with those labels on "
                 f"{c.get('val_frames')} more frames {best}"]
     return [f"* **Centre votes** ({used}): a {c['width']}-wide network taught on "

@@ -11,9 +11,10 @@ import torch
 from conftest import run_cli
 from inseggan_ros import checkpoint
 from inseggan_ros.centres import (OFFSET_UNIT, CentreConfig, CentreNet, centre_labels, decode,
-                                  match_to_renders, miou_of, targets)
+                                  fit, match_to_renders, miou_of, targets)
 from inseggan_ros.data import load_sim_split
 from inseggan_ros.loop import LoopConfig
+from inseggan_ros.paths import resolve_model
 from inseggan_ros.segment import Segmenter
 from inseggan_ros.settings import InferenceConfig
 
@@ -78,12 +79,16 @@ def test_settings_and_loop_refuse_what_cannot_work(tmp):
         InferenceConfig(centre_votes="on", label_head="on")
     with pytest.raises(ValueError, match="centre_iterations -1 invalid"):
         LoopConfig(centre_iterations=-1)
+    with pytest.raises(ValueError, match="centre_iterations 3 invalid; valid: 0 .* or >= 4"):
+        LoopConfig(centre_iterations=3)
     with pytest.raises(ValueError, match="at most one above 0"):
         LoopConfig(centre_iterations=10, head_iterations=10)
     with pytest.raises(ValueError, match="lr 0 invalid; valid: in"):
         CentreConfig(lr=0)
     with pytest.raises(ValueError, match="batch 0 invalid; valid: >= 1"):
         CentreConfig(batch=0)
+    with pytest.raises(ValueError, match="iterations 2 invalid; valid: >= 4"):
+        CentreConfig(iterations=2)
     state = checkpoint.load("models/cylinder/model.pt")  # shipped with centre votes, on
     assert state["inference"]["centre_votes"] == "on"
     checkpoint.save(tmp / "m.pt", {k: v for k, v in state.items()
@@ -99,6 +104,11 @@ def test_settings_and_loop_refuse_what_cannot_work(tmp):
     x = np.full((1, 1, 64, 64), -1.0, np.float32)
     with pytest.raises(ValueError, match="no centre-vote network"):
         seg.segment_batch(x, settings=replace(seg.inference, centre_votes="on"))
+    # a teacher's centre votes: only over the model's own labels, and only where it has them
+    with pytest.raises(ValueError, match="no centre-vote network to label with"):
+        fit(tmp / "none.pt", tmp, tmp / "out", self_labels=True, teacher_votes=True)
+    with pytest.raises(ValueError, match="only with self-labels"):
+        fit("models/cylinder/model.pt", tmp, tmp / "out", teacher_votes=True)
 
 
 def test_a_short_training_run_segments_held_out_piles_better_and_ships_in_the_model(tmp):
@@ -196,7 +206,7 @@ def test_self_labels_from_a_recording_label_all_its_frames(tmp):
     the model cuts a bag's, labelled by the model itself; the last --held-out choose. A folder
     that is neither a data set nor a bag is refused by name."""
     from inseggan_ros.data import load_bag
-    from inseggan_ros.modelcard import centres_record
+    from inseggan_ros.modelcard import _centres_line, centres_record
 
     bag = tmp / "bag"
     run_cli("simulate-bag", "--quiet", "--object", "cylinder", "--count", "16", "--seed", "5",
@@ -215,6 +225,23 @@ def test_self_labels_from_a_recording_label_all_its_frames(tmp):
     assert miou_of(cached, own) > 0.98
     record = centres_record(checkpoint.load(out / "model.pt"))
     assert record["teacher"] == "self-labels" and record["train_frames"] == 12
+    # the model as it ships labels (its own centre votes on): a second round's teacher
+    out2 = tmp / "self_votes"
+    run_cli("centres", "--model", "cylinder", "--sim", bag, "--self-labels",
+            "--teacher-centre-votes", "--held-out", "4", "--out", out2, "--iterations", "4",
+            "--batch", "4", "--width", "8", "--threads", "1", "--quiet", check=True, timeout=600)
+    with np.load(out2 / "self_labels.npz") as saved:
+        votes = saved["labels"]
+    shipped = Segmenter.from_checkpoint(resolve_model("cylinder"), device="cpu")
+    assert shipped.inference.centre_votes == "on"
+    theirs = shipped.segment_batch(frames["x"], frames["fg"], settings=replace(
+        shipped.inference, encoder_precision="float32"))["labels"].numpy()
+    assert miou_of(votes, theirs) > 0.98
+    assert miou_of(votes, own) < miou_of(votes, theirs) - 0.01  # not the z-buffer's
+    record = centres_record(checkpoint.load(out2 / "model.pt"))
+    assert record["teacher"] == "self-labels with its centre votes"
+    card = {"centre_votes": record, "inference": {"centre_votes": "on"}}
+    assert "with its centre votes on" in _centres_line(card)[0]
     (tmp / "empty").mkdir()
     p = run_cli("centres", "--model", "cylinder", "--sim", tmp / "empty", "--self-labels",
                 "--out", tmp / "none", "--iterations", "10", "--quiet")
