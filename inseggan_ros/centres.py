@@ -322,11 +322,13 @@ def fit(model, sim, out, cfg: CentreConfig = CentreConfig(), frames: int | None 
     seg = Segmenter.from_checkpoint(model, device="cpu")
     n = seg.model_cfg.n_instances
     if teacher_votes and not self_labels:
-        raise ValueError("teacher_votes: only with self-labels (piles carry their own labels)")
+        raise ValueError("the teacher's centre votes (--teacher-centre-votes) without "
+                         "self-labels: piles carry their own labels; valid: with "
+                         "--self-labels, or without the teacher's votes")
     if teacher_votes and seg.centre_net is None:
-        raise ValueError(f"{model}: no centre-vote network to label with (teacher_votes); "
-                         "valid: a model with centre votes (`inseggan centres` makes one), or "
-                         "teacher_votes off")
+        raise ValueError(f"{model}: no centre-vote network to label with "
+                         "(--teacher-centre-votes); valid: a model with centre votes "
+                         "(`inseggan centres` makes one), or without the teacher's votes")
     if self_labels:
         splits = _self_labelled(model, seg, sim, out, frames, held_out, workers, progress,
                                 user_frames, teacher_votes)

@@ -107,7 +107,7 @@ def test_settings_and_loop_refuse_what_cannot_work(tmp):
     # a teacher's centre votes: only over the model's own labels, and only where it has them
     with pytest.raises(ValueError, match="no centre-vote network to label with"):
         fit(tmp / "none.pt", tmp, tmp / "out", self_labels=True, teacher_votes=True)
-    with pytest.raises(ValueError, match="only with self-labels"):
+    with pytest.raises(ValueError, match="without self-labels.*valid: with --self-labels"):
         fit("models/cylinder/model.pt", tmp, tmp / "out", teacher_votes=True)
 
 
@@ -203,8 +203,9 @@ def test_self_labels_teach_the_net_the_models_own_labels_of_the_users_frames(tmp
 
 def test_self_labels_from_a_recording_label_all_its_frames(tmp):
     """`--self-labels` with a recording (a bag) instead of a data set: all its frames, cut as
-    the model cuts a bag's, labelled by the model itself; the last --held-out choose. A folder
-    that is neither a data set nor a bag is refused by name."""
+    the model cuts a bag's, labelled by the model itself; the last --held-out choose. With
+    --teacher-centre-votes the labels are the model's as it ships (its centre votes on), not
+    its z-buffer's. A folder that is neither a data set nor a bag is refused by name."""
     from inseggan_ros.data import load_bag
     from inseggan_ros.modelcard import _centres_line, centres_record
 
