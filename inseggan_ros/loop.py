@@ -349,19 +349,16 @@ def centres_stage(model: Path, sim: Path, view: dict, data, out: Path, cfg: Loop
 
 
 def self_stage(model: Path, data, out: Path, cfg: LoopConfig, progress: bool = True) -> Path:
-    """Stage 4: `selffit.self_fit` of the model on the user's training frames (a data set's
-    train split, or a bag's frames before the held-out cut), tau from the 200 frames the export
-    calibrates on -> out/last.pt."""
-    from . import data as data_mod
+    """Stage 4: `selffit.self_fit` of the model on `cfg.self_frames` of the user's training
+    frames (the first of a data set's train split, or a bag's spread evenly over its frames
+    before the held-out cut: a recording's neighbouring frames are alike), cut as the model
+    cuts them, tau from the 200 frames the export calibrates on -> out/last.pt."""
     from .segment import Segmenter
     from .selffit import SelfFitConfig, self_fit
 
     prep = Segmenter.from_checkpoint(model, device="cpu").prep_cfg
     calib = _user_frames(data, prep, "val", 200)  # the 200 the export calibrates on
-    if isinstance(data, BagFrames):
-        frames = data.frames(prep)[0]
-    else:
-        frames = data_mod.load_sim_split(data, "train", limit=cfg.self_frames, progress=progress)
+    frames = _user_frames(data, prep, "train", cfg.self_frames, progress)
     scfg = SelfFitConfig(frames=cfg.self_frames, iterations=cfg.self_iterations,
                          settings=cfg.self_settings, lr=cfg.lr, label_weight=cfg.label_weight,
                          ownership_weight=cfg.ownership_weight, workers=cfg.workers,
@@ -470,8 +467,8 @@ def _simulate_and_fit(file: Path, data, meta: dict | None, view: dict, sim: Path
 
 
 def _user_frames(data, prep, split: str, limit: int | None, progress: bool = False) -> dict:
-    """Up to `limit` (None: all) of the user's frames that are not the card's, spread evenly:
-    a bag's frames before its held-out cut, or a data set's `split`."""
+    """Up to `limit` (None: all) of the user's frames that are not the card's: a bag's frames
+    before its held-out cut, spread evenly over them, or the first of a data set's `split`."""
     from . import data as data_mod
 
     if isinstance(data, BagFrames):
