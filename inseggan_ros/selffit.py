@@ -24,6 +24,7 @@ It helps where the slow settings' labels are better than the fast ones (docs/exp
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from concurrent.futures import ProcessPoolExecutor
@@ -103,7 +104,8 @@ def self_labels(model, x: np.ndarray, fg: np.ndarray, tau: float | None, out_fil
     """(N, 64, 64) uint8 labels of prepared frames x (N, 1, 64, 64) with foreground fg, by the
     model at `cfg.settings` (then `overrides`, InferenceConfig fields) and `tau` (None: the
     model's own); saved to `out_file` (npz, atomically) after every chunk and resumed from it
-    when it holds the same job's first chunks."""
+    when it holds the same job's first chunks: the same model, settings and tau over the same
+    frames (their bytes' SHA-1: other frames of the same count are labelled anew)."""
     out_file = Path(out_file)
     out_file.parent.mkdir(parents=True, exist_ok=True)
     n = len(x)
@@ -112,6 +114,7 @@ def self_labels(model, x: np.ndarray, fg: np.ndarray, tau: float | None, out_fil
     overrides = dict(overrides or {})
     tau = None if tau is None else float(tau)
     job = {"model": str(model), "settings": cfg.settings, "tau": tau, "frames": n,
+           "frames_sha1": hashlib.sha1(np.ascontiguousarray(x, np.float32).tobytes()).hexdigest(),
            **({"overrides": overrides} if overrides else {})}
     if out_file.is_file():
         with np.load(out_file) as saved:

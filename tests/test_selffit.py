@@ -70,6 +70,12 @@ def test_self_fit_teaches_the_encoder_its_slow_labels_and_the_card_says_so(tmp):
     np.testing.assert_array_equal(again, saved["labels"])
     with np.load(out / "labels.npz") as f:
         assert f["done"].all()
+    # other frames of the same count (here the two chunks swapped) are not given these
+    # labels: they are labelled anew
+    swap = np.r_[8:16, 0:8]
+    swapped = self_labels(CONE, train["x"][swap], train["fg"][swap], tau, out / "labels.npz",
+                          cfg, progress=False)
+    np.testing.assert_array_equal(swapped, saved["labels"][swap])
 
 
 def test_self_fit_names_what_is_wrong(tmp):
