@@ -1,5 +1,6 @@
 """Shared by the experiments that try another rule for the labels of the default settings
-(`consensus.py`, `duplicates_merge.py`, `pose_average.py`): a model and a split of its data set
+(`consensus.py`, `duplicates_merge.py`, `pose_average.py`, `label_choice.py`,
+`centre_views.py`, `centre_ensemble.py`): a model and a split of its data set
 with the classical methods' scores and both hard subsets, the 8 starting points' poses and fit
 losses, and the rest of the shipped pipeline (smoothing, superpixel vote, split) scored on
 labels made another way."""
@@ -55,6 +56,12 @@ class Bench:
         t = vote_labels(t, self.x, n, cfg.superpixel_scale)
         t, _ = split_labels(t, self.x, n, cfg.split_scale)
         return miou_batch(t.numpy(), self.gt)
+
+    def scores(self, settings=None) -> np.ndarray:
+        """(N,) mIoU of the segmenter's labels with `settings` (default: the model's own)."""
+        labels = [self.seg.segment_batch(self.x[i:i + 50], self.fg[i:i + 50], settings=settings)
+                  ["labels"].numpy() for i in range(0, len(self.x), 50)]
+        return miou_batch(np.concatenate(labels), self.gt)
 
     def row(self, scores: np.ndarray) -> str:
         """All / K-Means hard / Felzenszwalb hard."""
