@@ -34,14 +34,8 @@ def main(argv=None) -> int:
     bench = load(args.model, args.data, args.split)
     bench.print_baselines()
     seg, x = bench.seg, bench.x[:, 0].numpy()
-
-    def labels(cfg):
-        return np.concatenate([seg.segment_batch(bench.x[i:i + 50], bench.fg[i:i + 50],
-                                                 settings=cfg)["labels"].numpy()
-                               for i in range(0, len(x), 50)])
-
-    votes = labels(replace(seg.inference, centre_votes="on"))
-    zbuf = labels(replace(seg.inference, centre_votes="off"))
+    votes = bench.labels(replace(seg.inference, centre_votes="on"))
+    zbuf = bench.labels(replace(seg.inference, centre_votes="off"))
     s_votes, s_zbuf = miou_batch(votes, bench.gt), miou_batch(zbuf, bench.gt)
     print("centre votes", bench.row(s_votes))
     print("z-buffer", bench.row(s_zbuf))

@@ -57,11 +57,15 @@ class Bench:
         t, _ = split_labels(t, self.x, n, cfg.split_scale)
         return miou_batch(t.numpy(), self.gt)
 
+    def labels(self, settings=None) -> np.ndarray:
+        """(N, 64, 64) the segmenter's labels with `settings` (default: the model's own)."""
+        return np.concatenate([self.seg.segment_batch(self.x[i:i + 50], self.fg[i:i + 50],
+                                                      settings=settings)["labels"].numpy()
+                               for i in range(0, len(self.x), 50)])
+
     def scores(self, settings=None) -> np.ndarray:
-        """(N,) mIoU of the segmenter's labels with `settings` (default: the model's own)."""
-        labels = [self.seg.segment_batch(self.x[i:i + 50], self.fg[i:i + 50], settings=settings)
-                  ["labels"].numpy() for i in range(0, len(self.x), 50)]
-        return miou_batch(np.concatenate(labels), self.gt)
+        """(N,) mIoU of `labels(settings)`."""
+        return miou_batch(self.labels(settings), self.gt)
 
     def row(self, scores: np.ndarray) -> str:
         """All / K-Means hard / Felzenszwalb hard."""
