@@ -706,6 +706,7 @@ def add_training_run(model_dir, checkpoint_path, eval_results, label: str,
     state = ckpt.load(checkpoint_path)
     t = state["train_config"]
     m = res["methods"]["inseggan"]
+    centres = centres_record(state)
     record = {"label": label, "checkpoint": str(checkpoint_path), "hardware": hardware,
               "nf": t["model"]["nf"],  # what renders: a shape fit makes a rod model convex
               "renderer": state["model_config"].get("renderer", t["model"]["renderer"]),
@@ -716,6 +717,9 @@ def add_training_run(model_dir, checkpoint_path, eval_results, label: str,
               if state.get("distill") else 0,  # the encoder fitted further (`inseggan distill`)
               "encoder_minutes": round(float(state["distill"]["seconds"]) / 60, 1)
               if state.get("distill") else 0.0,
+              # its centre-vote net (`inseggan centres`), where it has one
+              "centre_iterations": (centres or {}).get("iterations") or 0,
+              "centre_minutes": round(float((centres or {}).get("seconds") or 0) / 60, 1),
               "settings": {k: res[k] for k in ("refine_steps", "refine_hypotheses",
                                                "smooth_iters")},
               "miou_all": m["miou_all"], "miou_hard": m.get("miou_hard"),
@@ -748,7 +752,8 @@ def _runs_lines(card: dict) -> list[str]:
              "their row (refinement steps, starting points, smoothing iterations; 0, 1, 0: the "
              "GAN's own encoder alone); iterations and minutes up to the checkpoint kept (the "
              "best on the validation frames), the GAN's, then (+) the encoder's fitted further "
-             "where it was; milliseconds a frame on the CPU that scored it:", "",
+             "where it was, then (+) the centre-vote net's where it has one; milliseconds a "
+             "frame on the CPU that scored it:", "",
              "| run | hardware | template, nf, batch | iterations | minutes | settings "
              "(refine, starts, smooth) | all | hard: K-Means | hard: Felzenszwalb | ms / frame |",
              "|---|---|---|---|---|---|---|---|---|---|"]
@@ -758,6 +763,9 @@ def _runs_lines(card: dict) -> list[str]:
         if r.get("encoder_iterations"):
             its += f" + {r['encoder_iterations']}"
             mins += f" + {r['encoder_minutes']}"
+        if r.get("centre_iterations"):
+            its += f" + {r['centre_iterations']} (centre votes)"
+            mins += f" + {r['centre_minutes']}"
         lines.append(
             f"| {r['label']} | {r['hardware']} | {r['renderer']} ({r['composite']}), "
             f"{r['nf']}, {r['batch_size']} | {its} | {mins} | "

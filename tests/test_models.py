@@ -200,6 +200,13 @@ def test_card_run_records_another_training_run_on_the_cards_test_split(tmp, tiny
     readme = (folder / "README.md").read_text()
     assert readme == card_markdown(card) and "| tiny | a test CPU |" in readme
     assert (folder / "model.pt").read_bytes() == weights
+    # a checkpoint with a centre-vote net: its iterations and minutes join the row's
+    run_cli("card-run", folder, "--checkpoint", folder / "model.pt", "--eval",
+            tmp / "results.json", "--hardware", "a test CPU", "--label", "votes", check=True)
+    row = json.loads((folder / "card.json").read_text())["training_runs"][-1]
+    net = checkpoint.load(folder / "model.pt")["centre_net"]["summary"]
+    assert row["centre_iterations"] == net["config"]["iterations"] > 0
+    assert f"+ {net['config']['iterations']} (centre votes)" in (folder / "README.md").read_text()
     for bad, why in ((dict(data=f"{card['data']['root']} (val)"), "the card's test split"),
                      (dict(frames=card["test"]["frames"] - 1), "score the run on all of them")):
         (tmp / "results.json").write_text(json.dumps({**results, **bad}))
