@@ -292,7 +292,7 @@ def _plot(history: list, path) -> None:
 def fit(model, sim, out, cfg: CentreConfig = CentreConfig(), frames: int | None = None,
         progress: bool = True, as_given: bool = False, self_labels: bool = False,
         held_out: int = 200, workers: int = 1, user_frames: dict | None = None,
-        teacher_votes: bool = False) -> dict:
+        teacher_votes: bool = False, teacher_settings: str = "own") -> dict:
     """Centre votes for `model` (a checkpoint) from the labelled scenes of the simulated data
     set `sim` (train split to learn from, val split to choose the best iteration), cut as the
     model's preprocessing cuts frames (`as_given`: as a bag's, the bin found in every frame):
@@ -301,8 +301,9 @@ def fit(model, sim, out, cfg: CentreConfig = CentreConfig(), frames: int | None 
 
     With `self_labels`, `sim` is instead the user's own data set (its train split) or
     recording (a bag: all its frames), whose frames (their labels are not read) are labelled
-    by the model itself with its own settings (centre votes off, or with `teacher_votes` on:
-    the model as it ships, its own net the teacher; in `workers` processes), the last
+    by the model itself with its own settings (or `teacher_settings`: a parameters file or a
+    shipped one's name; centre votes off, or with `teacher_votes` on: the model as it ships,
+    its own net the teacher; in `workers` processes), the last
     `held_out` of them kept out to choose the best iteration by. Where the learned part
     is not the real one, piles of it teach the net the wrong part (the nut: validation 0.805
     against the shipped 0.886), its own frames the right one (0.922; docs/experiments.md,
@@ -325,13 +326,20 @@ def fit(model, sim, out, cfg: CentreConfig = CentreConfig(), frames: int | None 
         raise ValueError("the teacher's centre votes (--teacher-centre-votes) without "
                          "self-labels: piles carry their own labels; valid: with "
                          "--self-labels, or without the teacher's votes")
+    if teacher_settings != "own":
+        from .selffit import check_settings
+        if not self_labels:
+            raise ValueError(f"the teacher's settings (--teacher-settings {teacher_settings}) "
+                             "without self-labels: piles carry their own labels; valid: with "
+                             "--self-labels, or own")
+        check_settings(teacher_settings)
     if teacher_votes and seg.centre_net is None:
         raise ValueError(f"{model}: no centre-vote network to label with "
                          "(--teacher-centre-votes); valid: a model with centre votes "
                          "(`inseggan centres` makes one), or without the teacher's votes")
     if self_labels:
         splits = _self_labelled(model, seg, sim, out, frames, held_out, workers, progress,
-                                user_frames, teacher_votes)
+                                user_frames, teacher_votes, teacher_settings)
     else:
         splits = {}
         for split in ("train", "val"):
@@ -349,6 +357,7 @@ def fit(model, sim, out, cfg: CentreConfig = CentreConfig(), frames: int | None 
     keep.update(centre_net={**net_state(net), "sim": str(sim),
                             "teacher": ("self-labels" if self_labels else "piles")
                             + (" with its centre votes" if teacher_votes else ""),
+                            "teacher_settings": teacher_settings if self_labels else None,
                             "summary": {k: v for k, v in summary.items() if k != "history"}},
                 inference=inference.to_dict())
     checkpoint.save(out / "model.pt", keep)
@@ -357,7 +366,7 @@ def fit(model, sim, out, cfg: CentreConfig = CentreConfig(), frames: int | None 
 
 def _self_labelled(model, seg, data, out: Path, frames: int | None, held_out: int,
                    workers: int, progress: bool, given: dict | None = None,
-                   teacher_votes: bool = False) -> dict:
+                   teacher_votes: bool = False, teacher_settings: str = "own") -> dict:
     """`fit`'s two splits from the user's data set's train split (or a recording's frames, all
     of them), labelled by the model (its own settings and tau, centre votes off unless
     `teacher_votes`;
@@ -383,7 +392,7 @@ def _self_labelled(model, seg, data, out: Path, frames: int | None, held_out: in
         raise ValueError(f"{data}: {len(train['x'])} training frames; valid: more than the "
                          f"{held_out} held out to choose the iteration by")
     labels = self_labels(model, train["x"], train["fg"], None, out / "self_labels.npz",
-                         SelfFitConfig(settings="own", workers=workers), progress,
+                         SelfFitConfig(settings=teacher_settings, workers=workers), progress,
                          overrides={"centre_votes": "on" if teacher_votes else "off"})
     k = len(labels) - held_out
     return {"train": {"x": train["x"][:k], "fg": train["fg"][:k], "labels": labels[:k]},

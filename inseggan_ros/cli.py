@@ -501,7 +501,8 @@ def cmd_centres(args) -> int:
     summary = fit(resolve_model(str(args.model)), args.sim, args.out, cfg, frames=args.frames,
                   progress=not args.quiet, self_labels=args.self_labels,
                   held_out=args.held_out, workers=args.threads,
-                  teacher_votes=args.teacher_centre_votes)
+                  teacher_votes=args.teacher_centre_votes,
+                  teacher_settings=args.teacher_settings)
     chosen = ("held-out self-labelled frames" if args.self_labels else "simulated scenes")
     print(f"centre votes in {summary['seconds'] / 60:.1f} min: validation mIoU on the "
           f"{chosen} {summary['best_val_miou']:.3f}; model with them: "
@@ -1116,6 +1117,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --self-labels: the model labels with its own centre votes on "
                         "(the model as it ships; it must have them), not the z-buffer's "
                         "labels: a second round, or a net taught on piles as the teacher")
+    p.add_argument("--teacher-settings", default="own",
+                   help="with --self-labels: the settings the model labels with, a parameters "
+                        "file or a shipped one's name (quality: slower, better labels for the "
+                        "pin connector), or own: its stored settings (own)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=2,
                    help="threads to train with, and with --self-labels processes to label "

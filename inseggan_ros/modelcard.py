@@ -531,6 +531,7 @@ def centres_record(state: dict) -> dict | None:
         return None
     summary = net.get("summary", {})
     return {"width": net["width"], "sim": net.get("sim"), "teacher": net.get("teacher", "piles"),
+            "teacher_settings": net.get("teacher_settings"),
             "iterations": summary.get("config", {}).get("iterations"),
             "train_frames": summary.get("train_frames"),
             "val_frames": summary.get("val_frames"),
@@ -546,11 +547,13 @@ def _centres_line(card: dict) -> list[str]:
     best = "?" if c.get("best_val_miou") is None else f"{c['best_val_miou']:.3f}"
     if str(c.get("teacher")).startswith("self-labels"):
         votes = "on" if c["teacher"].endswith("centre votes") else "off"
+        with_ = (f" with the settings of `{c['teacher_settings']}`"
+                 if c.get("teacher_settings") not in (None, "own") else "")
         return [f"* **Centre votes** ({used}): a {c['width']}-wide network taught on "
                 f"{c.get('train_frames')} of the data set's own training frames (`{c.get('sim')}`"
-                f"), labelled by this model itself with its centre votes {votes} (no true label "
-                f"read), {c.get('iterations')} iterations; agreement with those labels on "
-                f"{c.get('val_frames')} more frames {best}"]
+                f"), labelled by this model itself{with_} with its centre votes {votes} (no "
+                f"true label read), {c.get('iterations')} iterations; agreement with those "
+                f"labels on {c.get('val_frames')} more frames {best}"]
     return [f"* **Centre votes** ({used}): a {c['width']}-wide network taught on "
             f"{c.get('train_frames')} labelled simulated piles of the learned part "
             f"(`{c.get('sim')}`), {c.get('iterations')} iterations; mIoU on "

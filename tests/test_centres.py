@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from conftest import run_cli
-from inseggan_ros import checkpoint
+from inseggan_ros import checkpoint, settings
 from inseggan_ros.centres import (OFFSET_UNIT, CentreConfig, CentreNet, centre_labels, decode,
                                   fit, match_to_renders, miou_of, targets)
 from inseggan_ros.data import load_sim_split
@@ -109,6 +109,12 @@ def test_settings_and_loop_refuse_what_cannot_work(tmp):
         fit(tmp / "none.pt", tmp, tmp / "out", self_labels=True, teacher_votes=True)
     with pytest.raises(ValueError, match="without self-labels.*valid: with --self-labels"):
         fit("models/cylinder/model.pt", tmp, tmp / "out", teacher_votes=True)
+    # the teacher's settings: only over the model's own labels, and only a readable file
+    with pytest.raises(ValueError, match="teacher's settings .* without self-labels"):
+        fit("models/cylinder/model.pt", tmp, tmp / "out", teacher_settings="quality")
+    with pytest.raises(Exception, match="nothing.yaml"):
+        fit("models/cylinder/model.pt", tmp, tmp / "out", self_labels=True,
+            teacher_settings=str(tmp / "nothing.yaml"))
 
 
 def test_a_short_training_run_segments_held_out_piles_better_and_ships_in_the_model(tmp):
@@ -196,6 +202,19 @@ def test_self_labels_teach_the_net_the_models_own_labels_of_the_users_frames(tmp
     assert record["teacher"] == "self-labels" and record["train_frames"] == 48
     card = {"centre_votes": record, "inference": {"centre_votes": "on"}}
     assert "labelled by this model itself" in _centres_line(card)[0]
+    # the teacher's settings (--teacher-settings): the labels are those the model gives with them
+    run_cli("centres", "--model", "cylinder", "--sim", data, "--self-labels", "--held-out", "8",
+            "--teacher-settings", "fastest", "--out", tmp / "fastest", "--iterations", "4",
+            "--batch", "8", "--width", "8", "--threads", "1", "--quiet", check=True, timeout=600)
+    with np.load(tmp / "fastest" / "self_labels.npz") as saved:
+        cached = saved["labels"]
+    fastest = settings.apply_file(seg.inference, "fastest", seg.stored_settings)
+    theirs = seg.segment_batch(train["x"], train["fg"], settings=replace(
+        fastest, centre_votes="off", encoder_precision="float32"))["labels"].numpy()
+    assert miou_of(cached, theirs) > 0.98
+    record = centres_record(checkpoint.load(tmp / "fastest" / "model.pt"))
+    card = {"centre_votes": record, "inference": {"centre_votes": "on"}}
+    assert "with the settings of `fastest`" in _centres_line(card)[0]
     p = run_cli("centres", "--model", "cylinder", "--sim", data, "--self-labels", "--held-out",
                 "56", "--out", tmp / "few", "--iterations", "10", "--quiet")
     assert p.returncode != 0 and "training frames" in p.stderr and "held out" in p.stderr
