@@ -112,7 +112,7 @@ def test_settings_and_loop_refuse_what_cannot_work(tmp):
     # the teacher's settings: only over the model's own labels, and only a readable file
     with pytest.raises(ValueError, match="teacher's settings .* without self-labels"):
         fit("models/cylinder/model.pt", tmp, tmp / "out", teacher_settings="quality")
-    with pytest.raises(Exception, match="nothing.yaml"):
+    with pytest.raises(ValueError, match="nothing.yaml: not a readable parameters file"):
         fit("models/cylinder/model.pt", tmp, tmp / "out", self_labels=True,
             teacher_settings=str(tmp / "nothing.yaml"))
 
