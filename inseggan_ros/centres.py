@@ -368,10 +368,9 @@ def _self_labelled(model, seg, data, out: Path, frames: int | None, held_out: in
                    workers: int, progress: bool, given: dict | None = None,
                    teacher_votes: bool = False, teacher_settings: str = "own") -> dict:
     """`fit`'s two splits from the user's data set's train split (or a recording's frames, all
-    of them), labelled by the model (its own settings and tau, centre votes off unless
-    `teacher_votes`;
-    `selffit.self_labels`, in `workers` processes, resumable from out/self_labels.npz), the
-    last `held_out` kept to choose by."""
+    of them), labelled by the model (its own settings, or `teacher_settings`, and its tau;
+    centre votes off unless `teacher_votes`; `selffit.self_labels`, in `workers` processes,
+    resumable from out/self_labels.npz), the last `held_out` kept to choose by."""
     from .bags import BagError
     from .data import load_bag, load_sim_split
     from .selffit import SelfFitConfig, self_labels

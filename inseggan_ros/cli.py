@@ -1119,8 +1119,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "labels: a second round, or a net taught on piles as the teacher")
     p.add_argument("--teacher-settings", default="own",
                    help="with --self-labels: the settings the model labels with, a parameters "
-                        "file or a shipped one's name (quality: slower, better labels for the "
-                        "pin connector), or own: its stored settings (own)")
+                        "file or a shipped one's name (e.g. quality), or own: its stored "
+                        "settings (own)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=2,
                    help="threads to train with, and with --self-labels processes to label "

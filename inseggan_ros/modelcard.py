@@ -709,7 +709,7 @@ def add_training_run(model_dir, checkpoint_path, eval_results, label: str,
     state = ckpt.load(checkpoint_path)
     t = state["train_config"]
     m = res["methods"]["inseggan"]
-    centres = centres_record(state)
+    centres = centres_record(state) or {}  # its centre-vote net, where it has one
     record = {"label": label, "checkpoint": str(checkpoint_path), "hardware": hardware,
               "nf": t["model"]["nf"],  # what renders: a shape fit makes a rod model convex
               "renderer": state["model_config"].get("renderer", t["model"]["renderer"]),
@@ -720,9 +720,8 @@ def add_training_run(model_dir, checkpoint_path, eval_results, label: str,
               if state.get("distill") else 0,  # the encoder fitted further (`inseggan distill`)
               "encoder_minutes": round(float(state["distill"]["seconds"]) / 60, 1)
               if state.get("distill") else 0.0,
-              # its centre-vote net (`inseggan centres`), where it has one
-              "centre_iterations": (centres or {}).get("iterations") or 0,
-              "centre_minutes": round(float((centres or {}).get("seconds") or 0) / 60, 1),
+              "centre_iterations": centres.get("iterations") or 0,
+              "centre_minutes": round(float(centres.get("seconds") or 0) / 60, 1),
               "settings": {k: res[k] for k in ("refine_steps", "refine_hypotheses",
                                                "smooth_iters")},
               "miou_all": m["miou_all"], "miou_hard": m.get("miou_hard"),
