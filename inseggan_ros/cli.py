@@ -357,7 +357,7 @@ def cmd_shape_fit(args) -> int:
 
     cfg = ShapeFitConfig(pieces=args.pieces, walls=args.walls, iterations=args.iterations,
                          frames=args.frames, eval_every=args.eval_every, seed=args.seed,
-                         thickness=args.thickness)
+                         thickness=args.thickness, start=args.start)
     file = _model_file(args.model)
     frames = _bag_or_data(args)
     report = None
@@ -961,13 +961,18 @@ def build_parser() -> argparse.ArgumentParser:
                         "curves.png")
     p.add_argument("--pieces", type=int, default=1, help="convex pieces (1)")
     p.add_argument("--walls", type=int, default=4, help="side planes of each piece (4: a box)")
-    p.add_argument("--iterations", type=int, default=1500, help="(1500)")
+    p.add_argument("--iterations", type=int, default=1500,
+                   help="(1500; 0: the starting template, measured on the frames, not fitted)")
     p.add_argument("--frames", type=int, default=1000,
                    help="the user's training frames fitted to (1000)")
     p.add_argument("--eval-every", type=int, default=250, help="(250)")
     p.add_argument("--thickness", choices=("data", "rod"), default="data",
                    help="the starting box's height: the frames' flat-lying parts' (data) or the "
                         "rod's diameter (rod)")
+    p.add_argument("--start", choices=("box", "discs"), default="box",
+                   help="the starting template: a box, every piece a copy (box), or the rod's "
+                        "radius profile as a stack of PIECES flat-ended discs (discs: a head on a "
+                        "shaft, a flange)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_shape_fit)

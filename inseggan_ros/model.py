@@ -513,6 +513,35 @@ class ConvexGenerator(TemplateGenerator):
         self.extent.copy_(_softplus_inverse((support - CONVEX_MIN_EXTENT + noise).clamp_min(1e-3)))
 
     @torch.no_grad()
+    def init_discs(self, segments, axis_height: float) -> None:
+        """Piece k: a right prism about the template's x axis (its `walls` around that axis),
+        spanning x0_k..x1_k with its walls at distance r_k from the axis, the axis at
+        `axis_height`; `segments`: K (x0, x1, r), in order along the axis (a stack of discs:
+        a solid of revolution with flat steps, such as a head on a shaft or a flange). Where a
+        piece must reach back to the previous piece's centre (`halfspaces`), it does so inside
+        that piece when the previous one is the wider: give the widest end first."""
+        K, P = self.extent.shape
+        if len(segments) != K:
+            raise ValueError(f"{len(segments)} segments for a template of {K} pieces; valid: {K}")
+        dev = self.extent.device
+        seg = torch.tensor([[float(v) for v in s] for s in segments], device=dev)
+        x0, x1, r = seg.unbind(1)
+        if bool((x1 - x0 <= 2 * CONVEX_MIN_EXTENT).any()) or bool((r <= CONVEX_MIN_EXTENT).any()):
+            raise ValueError(f"segments {segments} invalid; valid: each longer than "
+                             f"{2 * CONVEX_MIN_EXTENT} with a radius above {CONVEX_MIN_EXTENT}")
+        self.centre.copy_(torch.stack([(x0 + x1) / 2, torch.zeros_like(r),
+                                       torch.full_like(r, float(axis_height))], 1))
+        self.orientation.copy_(torch.tensor([0.0, math.pi / 2, 0.0], device=dev).expand(K, 3))
+        self.tilt.zero_()
+        # the support wanted: the caps (top, bottom: along +-x once turned) at the segment's
+        # ends, the walls at r; less what `halfspaces` adds by itself
+        support = torch.cat([((x1 - x0) / 2)[:, None].expand(K, 2), r[:, None].expand(K, P - 2)], 1)
+        n = torch.einsum("kij,pj->kpi", rodrigues(self.orientation), self.base)
+        prev = torch.cat([self.centre[:1], self.centre[:-1]])
+        reach = F.relu((n * (prev - self.centre)[:, None]).sum(-1))
+        self.extent.copy_(_softplus_inverse((support - reach - CONVEX_MIN_EXTENT).clamp_min(1e-3)))
+
+    @torch.no_grad()
     def init_from_data(self, x, n_instances: int) -> tuple[float, float, float]:
         """Start as the box the training frames suggest: (N, 1, H, W) model inputs -> a square
         footprint of the mean visible area per instance, and as its thickness the lower quartile

@@ -53,7 +53,7 @@ from .model import CONVEX_MIN_EXTENT, ConvexGenerator, ModelConfig, SphereGenera
 class ShapeFitConfig:
     pieces: int = 1  # convex pieces of the template (`ModelConfig.pieces`)
     walls: int = 4  # side planes of each (`ModelConfig.walls`: 4 make a box)
-    iterations: int = 1500
+    iterations: int = 1500  # 0: the starting template as it is (the discs: see `rod_discs`)
     frames: int = 1000  # of the user's training frames, at most
     batch_size: int = 32
     encoder_lr: float = 1e-4  # encoder and pose decoder (already trained: small steps)
@@ -63,17 +63,24 @@ class ShapeFitConfig:
     val_frames: int = 100  # reconstruction error reported on these (no label read)
     thickness: str = "data"  # the starting box's height: "data" (the frames' lower-quartile
     # foreground height, where thinner than the rod) or "rod" (the rod's diameter)
+    start: str = "box"  # the starting template: "box" (`rod_box`, every piece a copy) or
+    # "discs" (`rod_discs`: the rod's radius profile as a stack of `pieces` prisms)
     seed: int = 0
 
     def __post_init__(self):
-        for key in ("pieces", "iterations", "frames", "batch_size", "recon_levels",
-                    "eval_every", "val_frames"):
+        for key in ("pieces", "frames", "batch_size", "recon_levels", "eval_every",
+                    "val_frames"):
             if getattr(self, key) < 1:
                 raise ValueError(f"{key} {getattr(self, key)!r} invalid; valid: >= 1")
+        if self.iterations < 0:
+            raise ValueError(f"iterations {self.iterations!r} invalid; valid: >= 0 (0: the "
+                             "starting template, measured, not fitted)")
         if self.walls < 4 or self.walls % 4:
             raise ValueError(f"walls {self.walls!r} invalid; valid: a multiple of 4, >= 4")
         if self.thickness not in ("data", "rod"):
             raise ValueError(f"thickness {self.thickness!r} invalid; valid: data, rod")
+        if self.start not in ("box", "discs"):
+            raise ValueError(f"start {self.start!r} invalid; valid: box, discs")
         for key in ("encoder_lr", "template_lr"):
             if not 0 < getattr(self, key) < 1:
                 raise ValueError(f"{key} {getattr(self, key)!r} invalid; valid: in (0, 1)")
@@ -108,10 +115,71 @@ def rod_box(G: SphereGenerator, x=None) -> tuple[float, float, float]:
     return half_len, rad, thick
 
 
+def rod_discs(G: SphereGenerator, pieces: int, walls: int, samples: int = 240
+              ) -> list[tuple[float, float, float]]:
+    """The rod's radius profile as `pieces` flat-ended discs: -> (x0, x1, r) per disc along the
+    rod's axis (its own frame), in order from one end (`ConvexGenerator.init_discs`).
+
+    The profile is the envelope of the rod's spheres, rho(x), sampled at `samples` points. The
+    cuts are where a piecewise-constant cross-section best fits rho^2 (least squares, by
+    dynamic programming over the cut positions), each disc as thick as its segment's mean
+    cross-section (its volume kept) and its `walls`-sided polygon of the same area as that
+    circle. Why: a rod's spheres round every end, and a radius that changes along the rod
+    changes smoothly, while a bolt's head or a pin's flange is a flat-faced step; discs start
+    the reconstruction fit (`fit_shape`) at the rod's own size and profile, with those steps
+    to be found, where a box does not (docs/experiments.md, 2026-11-29, evening)."""
+    c, r = (t.detach().double().cpu() for t in G.spheres())
+    cx = c[:, 0]
+    x = torch.linspace(float((cx - r).min()), float((cx + r).max()), samples + 1,
+                       dtype=torch.float64)
+    x = (x[1:] + x[:-1]) / 2  # bin centres
+    a = (r[None, :] ** 2 - (x[:, None] - cx[None, :]) ** 2).clamp_min(0).amax(1)  # rho^2
+    # cost of one disc over samples [i, j): the squared deviation of rho^2 from its mean
+    s1 = torch.cat([a.new_zeros(1), a.cumsum(0)])
+    s2 = torch.cat([a.new_zeros(1), (a ** 2).cumsum(0)])
+
+    def cost(i, j):
+        return float(s2[j] - s2[i] - (s1[j] - s1[i]) ** 2 / (j - i))
+
+    n, step = samples, float(x[1] - x[0])
+    shortest = math.floor(2 * CONVEX_MIN_EXTENT / step) + 1  # samples: a disc init_discs takes
+    if pieces * shortest > n:
+        raise ValueError(f"pieces {pieces} invalid for discs on this rod; valid: "
+                         f"1..{n // shortest}")
+    best = [[math.inf] * (n + 1) for _ in range(pieces + 1)]
+    cut = [[0] * (n + 1) for _ in range(pieces + 1)]
+    best[0][0] = 0.0
+    for k in range(1, pieces + 1):
+        for j in range(k * shortest, n + 1):
+            for i in range((k - 1) * shortest, j - shortest + 1):
+                v = best[k - 1][i] + cost(i, j)
+                if v < best[k][j]:
+                    best[k][j], cut[k][j] = v, i
+    bounds, j = [n], n
+    for k in range(pieces, 0, -1):
+        j = cut[k][j]
+        bounds.append(j)
+    bounds = bounds[::-1]
+    edges = [float(x[0]) - step / 2 + b * step for b in bounds]
+    polygon = math.sqrt(math.pi / (walls * math.tan(math.pi / walls)))  # same area as the circle
+    discs = [(edges[k], edges[k + 1],
+              polygon * math.sqrt(float(a[bounds[k]:bounds[k + 1]].mean())))
+             for k in range(pieces)]
+    # each piece reaches back to the previous one's centre (`ConvexGenerator.halfspaces`): a
+    # wider piece then covers half of a narrower one. Take the direction along the axis where
+    # that adds least (about: the widening times the previous disc's half-length)
+
+    def grown(order):
+        return sum(max(0.0, b[2] - a[2]) * (a[1] - a[0]) / 2 for a, b in zip(order, order[1:]))
+
+    return discs[::-1] if grown(discs[::-1]) < grown(discs) else discs
+
+
 def convex_from_rod(state: dict, cfg: ShapeFitConfig, source="checkpoint", x=None):
     """A rod model's training checkpoint `state` -> (the convex model's state, G, E): the rod's
     encoder and pose decoder, the template the box `rod_box` gives (with the frames `x` when
-    `cfg.thickness` is "data").
+    `cfg.thickness` is "data"), or with `cfg.start` "discs" the discs `rod_discs` gives, about
+    the rod's axis.
 
     Why the thickness from the frames: a rod looks the same turned about its axis, so its
     poses say nothing of that turn, and a box as thick as it is wide looks the same under a
@@ -126,7 +194,13 @@ def convex_from_rod(state: dict, cfg: ShapeFitConfig, source="checkpoint", x=Non
     mcfg.update(renderer="convex", pieces=cfg.pieces, walls=cfg.walls, floor_contact=True)
     G = ConvexGenerator(ModelConfig.from_dict(mcfg))
     G.pose.load_state_dict(rod.pose.state_dict())
-    G.init_box(rod_box(rod, x if cfg.thickness == "data" else None))
+    if cfg.start == "discs":  # about the pose's origin, as the rod's spheres: lifted by the
+        # floor contact instead of the rod's `lift`, the rod's poses render them as they did it
+        # (validation reconstruction of bolts 0.209 against the rod's 0.201; with the axis at
+        # the rod's lift in the template's frame, which tilts with the pose, 0.260)
+        G.init_discs(rod_discs(rod, cfg.pieces, cfg.walls), 0.0)
+    else:
+        G.init_box(rod_box(rod, x if cfg.thickness == "data" else None))
     # without the rod encoder's distillation record: the encoder's next fit (the loop's) is
     # the one this model's card accounts for
     new = {k: v for k, v in state.items()

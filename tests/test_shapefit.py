@@ -13,7 +13,7 @@ from inseggan_ros import checkpoint
 from inseggan_ros.model import ConvexGenerator
 from inseggan_ros.segment import Segmenter
 from inseggan_ros.shapefit import (ShapeFitConfig, convex_from_rod, fit_shape, hold_out,
-                                   rod_box)
+                                   rod_box, rod_discs)
 
 # the wooden block's rod model as the GAN left it (no label of any kind): test_loop's
 MODEL = Path(__file__).resolve().parent / "data" / "wooden_block_unsupervised.pt"
@@ -36,6 +36,108 @@ def test_the_convex_start_is_the_rods_bounding_box_with_its_encoder():
     torch.testing.assert_close(G.pose(z.reshape(6, -1)), rod.pose(z.reshape(6, -1)))
     for k, v in E.state_dict().items():
         torch.testing.assert_close(v, E2.state_dict()[k])
+
+
+def _stepped_rod(head: float = 0.2, shaft: float = 0.1):
+    """A rod of 12 spheres: the first three `head` wide, the rest `shaft` (a bolt's profile)."""
+    from inseggan_ros.model import ModelConfig, SphereGenerator
+
+    rod = SphereGenerator(ModelConfig(renderer="spheres", composite="zbuffer", spheres=12,
+                                      radius_profile="free"))
+    with torch.no_grad():  # radii = e^log_radius (0.5 + 0.5 sigmoid(shape))
+        rod.log_radius.fill_(np.log(head))
+        rod.radius_shape.copy_(torch.tensor([9.0] * 3 + [0.0] * 9))  # 1.0 x, then 0.75 x
+        rod.length.fill_(1.0)
+    return rod
+
+
+def test_discs_follow_a_rods_step_and_make_one_body_of_those_sizes():
+    """A rod with a head: two discs cut near the head's end, the head's the wider; built as a
+    convex template, each piece spans its segment along the axis with walls at its radius,
+    and the whole is one connected body."""
+    from inseggan_ros.model import CONVEX_MIN_EXTENT, ModelConfig
+    from inseggan_ros.shape import components, template_pieces
+
+    rod = _stepped_rod()
+    c, r = (t.detach() for t in rod.spheres())
+    discs = rod_discs(rod, 2, 8)
+    assert len(discs) == 2
+    (a0, a1, ra), (b0, b1, rb) = discs
+    assert ra > 1.2 * rb  # the head, then the shaft (the widening order: the head first)
+    ends = sorted([a0, a1, b0, b1])
+    assert ends[0] == pytest.approx(float((c[:, 0] - r).min()), abs=0.01)
+    assert ends[-1] == pytest.approx(float((c[:, 0] + r).max()), abs=0.01)
+    step = float(c[2, 0] + r[2])  # where the third (last wide) sphere ends
+    cut = a1 if a0 < b0 else a0
+    assert abs(cut - step) < 0.1
+    G = ConvexGenerator(ModelConfig(renderer="convex", composite="zbuffer", pieces=2, walls=8,
+                                    floor_contact=True))
+    G.init_discs(discs, 0.0)
+    x, real = (t.detach() for t in G.corners())
+    for k, (x0, x1, rad) in enumerate(discs):
+        xk = x[k][real[k]]  # an octagon about x with walls facing +-y and +-z: those at rad
+        assert float(xk[:, 1].abs().max()) == pytest.approx(rad, rel=1e-3)
+        assert float(xk[:, 2].abs().max()) == pytest.approx(rad, rel=1e-3)
+        lo, hi = float(xk[:, 0].min()), float(xk[:, 0].max())
+        if k == 0:  # the first disc spans its segment
+            assert (lo, hi) == (pytest.approx(x0, abs=1e-4), pytest.approx(x1, abs=1e-4))
+        else:  # the next one its segment and back to the previous one's centre (connected)
+            prev = (discs[k - 1][0] + discs[k - 1][1]) / 2
+            end, reached = (x1, hi) if x0 > prev else (x0, lo)  # its end away from the previous
+            assert reached == pytest.approx(end, abs=1e-4)
+            assert min(lo, hi) <= prev + 1e-4 and max(lo, hi) >= prev - 1e-4
+    assert components(template_pieces(G)) == 1
+    with pytest.raises(ValueError, match="segments"):
+        G.init_discs([(0.0, CONVEX_MIN_EXTENT, 0.1), (0.1, 0.3, 0.1)], 0.0)
+    with pytest.raises(ValueError, match="pieces"):
+        rod_discs(rod, 200, 8)
+
+
+def test_a_disc_start_renders_as_its_rod_did_for_the_rods_poses():
+    """`shape-fit --start discs`: the convex template from the rod model's profile, about the
+    rod's axis, so that the rod's encoder and pose decoder place it where they placed the rod:
+    the same codes give renders that cover nearly the same pixels."""
+    state = checkpoint.load(MODEL)
+    _, rod, _ = checkpoint.build_models(state, MODEL)
+    _, G, _ = convex_from_rod(state, ShapeFitConfig(pieces=2, walls=8, start="discs"))
+    z = torch.randn(4, 3, rod.cfg.latent_dim, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        a = rod.render_instances(z) > -1 + 1e-3
+        b = G.render_instances(z) > -1 + 1e-3
+    iou = float((a & b).sum()) / float((a | b).sum())
+    assert iou > 0.7
+    with pytest.raises(ValueError, match="start"):
+        ShapeFitConfig(start="sphere")
+
+
+def test_shape_fit_with_no_iterations_writes_the_discs_a_simulator_drops(tmp):
+    """`shape-fit --start discs --iterations 0`: the discs of the rod's profile, measured on
+    the frames and against the true part, not fitted; a model `simulate --object` piles up."""
+    user = tmp / "user"
+    run_cli("simulate", "--quiet", "--object", "bolt", "--instances", "4", "--count", "12",
+            "--split", "8,4,0", "--seed", "5", "--camera", "realsense_d435", "--noise",
+            "realsense", "--workers", "1", "--out", user, check=True, timeout=300)  # MODEL's view
+    out = tmp / "discs"
+    p = run_cli("shape-fit", "--model", MODEL, "--data", user, "--out", out, "--start", "discs",
+                "--pieces", "2", "--walls", "8", "--iterations", "0", "--frames", "8", "--quiet",
+                check=True, timeout=300)
+    assert "IoU with the true part" in p.stdout, p.stdout + p.stderr
+    s = json.loads((out / "summary.json").read_text())
+    assert s["iterations"] == 0 and s["model"] == str(out / "best.pt")
+    assert s["best"]["iteration"] == 0 and s["best"]["recon_l1"] > 0
+    _, G, _ = checkpoint.build_models(checkpoint.load(out / "best.pt"))
+    _, start, _ = convex_from_rod(checkpoint.load(MODEL),
+                                  ShapeFitConfig(pieces=2, walls=8, start="discs"))
+    for a, b in zip(G.halfspaces(), start.halfspaces()):
+        torch.testing.assert_close(a, b)
+    piles = tmp / "piles"
+    run_cli("simulate", "--quiet", "--object", out / "best.pt", "--count", "2", "--split",
+            "2,0,0", "--seed", "5", "--workers", "1", "--out", piles, check=True, timeout=300)
+    from inseggan_ros.data import load_sim_split
+
+    assert int(load_sim_split(piles, "train")["labels"].max()) >= 1
+    with pytest.raises(ValueError, match="iterations"):
+        ShapeFitConfig(iterations=-1)
 
 
 def test_a_short_recording_still_holds_frames_out_to_keep_the_best_fit_by():
