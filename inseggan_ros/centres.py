@@ -355,6 +355,7 @@ def fit(model, sim, out, cfg: CentreConfig = CentreConfig(), frames: int | None 
                         centre_votes="on", label_head="off")  # the votes instead of a head
     keep = {k: v for k, v in state.items() if k not in ("format", "optimizers", "rng")}
     keep.update(centre_net={**net_state(net), "sim": str(sim),
+                            "piles_part": None if self_labels else piles_part(sim),
                             "teacher": ("self-labels" if self_labels else "piles")
                             + (" with its centre votes" if teacher_votes else ""),
                             "teacher_settings": teacher_settings if self_labels else None,
@@ -362,6 +363,36 @@ def fit(model, sim, out, cfg: CentreConfig = CentreConfig(), frames: int | None 
                 inference=inference.to_dict())
     checkpoint.save(out / "model.pt", keep)
     return {**summary, "model": str(out / "model.pt")}
+
+
+def piles_part(sim) -> str | None:
+    """What the simulated piles `sim` are piles of, for the card: a library part's name, or for
+    a learned template (`simulate --object MODEL`) its kind, and where the template is not the
+    model's own renderer's (`shape-fit --start discs --iterations 0`) how it was made; None for
+    a data set without a readable record."""
+    from . import checkpoint
+    from .sim.dataset import load_meta
+    from .sim.learned import is_model_path
+
+    try:
+        obj = str(load_meta(sim)["scene"]["object"])
+    except (OSError, KeyError, ValueError):
+        return None
+    if not is_model_path(obj):
+        return obj
+    try:
+        state = checkpoint.load(Path(obj) / "model.pt" if Path(obj).is_dir() else obj)
+    except checkpoint.CheckpointError:
+        return f"the template of {obj}"
+    cfg, fit = state.get("model_config", {}), state.get("shape_fit")
+    if cfg.get("renderer") == "spheres":
+        return f"the learned rod of {obj}"
+    kind = f"{cfg.get('pieces')} convex pieces of {cfg.get('walls')} walls"
+    if fit and fit["config"].get("start") == "discs":
+        kind = (f"the learned rod's profile as {cfg.get('pieces')} flat-ended discs"
+                + (f", fitted {fit['iteration']} iterations" if fit["iteration"] else
+                   " (not fitted)"))
+    return f"{kind}: {obj}"
 
 
 def _self_labelled(model, seg, data, out: Path, frames: int | None, held_out: int,

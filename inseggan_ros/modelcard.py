@@ -530,7 +530,8 @@ def centres_record(state: dict) -> dict | None:
     if not net:
         return None
     summary = net.get("summary", {})
-    return {"width": net["width"], "sim": net.get("sim"), "teacher": net.get("teacher", "piles"),
+    return {"width": net["width"], "sim": net.get("sim"), "piles_part": net.get("piles_part"),
+            "teacher": net.get("teacher", "piles"),
             "teacher_settings": net.get("teacher_settings"),
             "iterations": summary.get("config", {}).get("iterations"),
             "train_frames": summary.get("train_frames"),
@@ -554,8 +555,9 @@ def _centres_line(card: dict) -> list[str]:
                 f"), labelled by this model itself{with_} with its centre votes {votes} (no "
                 f"true label read), {c.get('iterations')} iterations; agreement with those "
                 f"labels on {c.get('val_frames')} more frames {best}"]
+    part = f" ({c['piles_part']})" if c.get("piles_part") else ""
     return [f"* **Centre votes** ({used}): a {c['width']}-wide network taught on "
-            f"{c.get('train_frames')} labelled simulated piles of the learned part "
+            f"{c.get('train_frames')} labelled simulated piles of the learned part{part} "
             f"(`{c.get('sim')}`), {c.get('iterations')} iterations; mIoU on "
             f"{c.get('val_frames')} more piles {best}"]
 
