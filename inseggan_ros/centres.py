@@ -366,10 +366,10 @@ def fit(model, sim, out, cfg: CentreConfig = CentreConfig(), frames: int | None 
 
 
 def piles_part(sim) -> str | None:
-    """What the simulated piles `sim` are piles of, for the card: a library part's name, or for
-    a learned template (`simulate --object MODEL`) its kind, and where the template is not the
-    model's own renderer's (`shape-fit --start discs --iterations 0`) how it was made; None for
-    a data set without a readable record."""
+    """What the simulated piles `sim` are piles of, as the card says it: the simulator's own
+    part (a library part: the true shape), or the learned template a model made
+    (`simulate --object MODEL`) and, where it is not the model's rod, how it was made
+    (`shape-fit --start discs`); None for a data set without a readable record."""
     from . import checkpoint
     from .sim.dataset import load_meta
     from .sim.learned import is_model_path
@@ -379,20 +379,20 @@ def piles_part(sim) -> str | None:
     except (OSError, KeyError, ValueError):
         return None
     if not is_model_path(obj):
-        return obj
+        return f"the simulator's {obj} (the true part)"
     try:
         state = checkpoint.load(Path(obj) / "model.pt" if Path(obj).is_dir() else obj)
     except checkpoint.CheckpointError:
-        return f"the template of {obj}"
+        return f"the learned template of `{obj}`"
     cfg, fit = state.get("model_config", {}), state.get("shape_fit")
     if cfg.get("renderer") == "spheres":
-        return f"the learned rod of {obj}"
-    kind = f"{cfg.get('pieces')} convex pieces of {cfg.get('walls')} walls"
+        return f"the learned rod of `{obj}`"
     if fit and fit["config"].get("start") == "discs":
-        kind = (f"the learned rod's profile as {cfg.get('pieces')} flat-ended discs"
-                + (f", fitted {fit['iteration']} iterations" if fit["iteration"] else
-                   " (not fitted)"))
-    return f"{kind}: {obj}"
+        how = f"fitted {fit['iteration']} iterations" if fit["iteration"] else "not fitted"
+        return (f"the learned rod's profile as {cfg.get('pieces')} flat-ended discs, {how}, "
+                f"from `{obj}`")
+    return (f"the learned template of `{obj}`, {cfg.get('pieces')} convex pieces of "
+            f"{cfg.get('walls')} walls")
 
 
 def _self_labelled(model, seg, data, out: Path, frames: int | None, held_out: int,

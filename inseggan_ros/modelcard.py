@@ -555,11 +555,10 @@ def _centres_line(card: dict) -> list[str]:
                 f"), labelled by this model itself{with_} with its centre votes {votes} (no "
                 f"true label read), {c.get('iterations')} iterations; agreement with those "
                 f"labels on {c.get('val_frames')} more frames {best}"]
-    part = f" ({c['piles_part']})" if c.get("piles_part") else ""
     return [f"* **Centre votes** ({used}): a {c['width']}-wide network taught on "
-            f"{c.get('train_frames')} labelled simulated piles of the learned part{part} "
-            f"(`{c.get('sim')}`), {c.get('iterations')} iterations; mIoU on "
-            f"{c.get('val_frames')} more piles {best}"]
+            f"{c.get('train_frames')} labelled simulated piles of "
+            f"{c.get('piles_part') or 'the learned part'} (`{c.get('sim')}`), "
+            f"{c.get('iterations')} iterations; mIoU on {c.get('val_frames')} more piles {best}"]
 
 
 def _vote_line(card: dict) -> list[str]:

@@ -134,7 +134,8 @@ def test_a_short_training_run_segments_held_out_piles_better_and_ships_in_the_mo
     assert (out / "curves.png").stat().st_size > 0
     seg = Segmenter.from_checkpoint(out / "model.pt", device="cpu")
     assert seg.centre_net is not None and seg.inference.centre_votes == "on"
-    assert checkpoint.load(out / "model.pt")["centre_net"]["piles_part"] == "cylinder"
+    assert (checkpoint.load(out / "model.pt")["centre_net"]["piles_part"]
+            == "the simulator's cylinder (the true part)")
     val = load_sim_split(sim, "val", seg.prep_cfg)
     n = seg.model_cfg.n_instances
     torch.manual_seed(0)

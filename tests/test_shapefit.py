@@ -139,9 +139,9 @@ def test_shape_fit_with_no_iterations_writes_the_discs_a_simulator_drops(tmp):
     from inseggan_ros.centres import piles_part
 
     # what a centre-vote net taught on them records (its card names the piles' part)
-    assert piles_part(piles) == (f"the learned rod's profile as 2 flat-ended discs (not "
-                                 f"fitted): {out / 'best.pt'}")
-    assert piles_part(user) == "bolt"
+    assert piles_part(piles) == ("the learned rod's profile as 2 flat-ended discs, not fitted, "
+                                 f"from `{out / 'best.pt'}`")
+    assert piles_part(user) == "the simulator's bolt (the true part)"
     with pytest.raises(ValueError, match="iterations"):
         ShapeFitConfig(iterations=-1)
 
