@@ -517,9 +517,10 @@ class ConvexGenerator(TemplateGenerator):
         """Piece k: a right prism about the template's x axis (its `walls` around that axis),
         spanning x0_k..x1_k with its walls at distance r_k from the axis, the axis at
         `axis_height`; `segments`: K (x0, x1, r), in order along the axis (a stack of discs:
-        a solid of revolution with flat steps, such as a head on a shaft or a flange). Where a
-        piece must reach back to the previous piece's centre (`halfspaces`), it does so inside
-        that piece when the previous one is the wider: give the widest end first."""
+        a solid of revolution with flat steps, such as a head on a shaft or a flange). Each piece
+        also reaches back to the previous piece's centre (`halfspaces`: one connected body),
+        unseen inside the previous piece where that one is the wider (`shapefit.rod_discs`
+        orders them so where it can)."""
         K, P = self.extent.shape
         if len(segments) != K:
             raise ValueError(f"{len(segments)} segments for a template of {K} pieces; valid: {K}")

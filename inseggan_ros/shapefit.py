@@ -168,11 +168,11 @@ def rod_discs(G: SphereGenerator, pieces: int, walls: int, samples: int = 240
     discs = [(edges[k], edges[k + 1],
               polygon * math.sqrt(float(a[bounds[k]:bounds[k + 1]].mean())))
              for k in range(pieces)]
-    # each piece reaches back to the previous one's centre (`ConvexGenerator.halfspaces`): a
-    # wider piece then covers half of a narrower one. Take the direction along the axis where
-    # that adds least (about: the widening times the previous disc's half-length)
 
     def grown(order):
+        """About what the order adds to the discs: each piece reaches back to the previous
+        one's centre (`ConvexGenerator.halfspaces`), so a wider piece after a narrower one
+        covers half of it (the widening times the previous disc's half-length)."""
         return sum(max(0.0, b[2] - a[2]) * (a[1] - a[0]) / 2 for a, b in zip(order, order[1:]))
 
     return discs[::-1] if grown(discs[::-1]) < grown(discs) else discs
@@ -197,10 +197,9 @@ def convex_from_rod(state: dict, cfg: ShapeFitConfig, source="checkpoint", x=Non
     mcfg.update(renderer="convex", pieces=cfg.pieces, walls=cfg.walls, floor_contact=True)
     G = ConvexGenerator(ModelConfig.from_dict(mcfg))
     G.pose.load_state_dict(rod.pose.state_dict())
-    if cfg.start == "discs":  # about the pose's origin, as the rod's spheres: lifted by the
-        # floor contact instead of the rod's `lift`, the rod's poses render them as they did it
-        # (validation reconstruction of bolts 0.209 against the rod's 0.201; with the axis at
-        # the rod's lift in the template's frame, which tilts with the pose, 0.260)
+    if cfg.start == "discs":  # about the pose's origin, as the rod's spheres are, lifted by
+        # the floor contact instead of the rod's `lift`: so the rod's poses place them where
+        # they placed it (the lift in the template's own frame would turn with each pose)
         G.init_discs(rod_discs(rod, cfg.pieces, cfg.walls), 0.0)
     else:
         G.init_box(rod_box(rod, x if cfg.thickness == "data" else None))
