@@ -537,9 +537,7 @@ class ConvexGenerator(TemplateGenerator):
         # the support wanted: the caps (top, bottom: along +-x once turned) at the segment's
         # ends, the walls at r; less what `halfspaces` adds by itself
         support = torch.cat([((x1 - x0) / 2)[:, None].expand(K, 2), r[:, None].expand(K, P - 2)], 1)
-        n = torch.einsum("kij,pj->kpi", rodrigues(self.orientation), self.base)
-        prev = torch.cat([self.centre[:1], self.centre[:-1]])
-        reach = F.relu((n * (prev - self.centre)[:, None]).sum(-1))
+        _, reach = self._normals_reach()  # with the tilts zeroed above
         self.extent.copy_(_softplus_inverse((support - reach - CONVEX_MIN_EXTENT).clamp_min(1e-3)))
 
     @torch.no_grad()
@@ -559,14 +557,19 @@ class ConvexGenerator(TemplateGenerator):
         self.init_box(half)
         return half
 
-    def halfspaces(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """-> the template in its own frame: (K, P, 3) unit normals, (K, P) offsets."""
+    def _normals_reach(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """-> (K, P, 3) unit normals in the template's frame, and (K, P) how far each plane must
+        lie from its piece's centre for the piece to hold the previous piece's centre."""
         t = self.tilt
         n = self.base + CONVEX_MAX_TILT * t / torch.sqrt(1 + (t ** 2).sum(-1, keepdim=True))
         n = n / n.norm(dim=-1, keepdim=True)
         n = torch.einsum("kij,kpj->kpi", rodrigues(self.orientation), n)
         prev = torch.cat([self.centre[:1], self.centre[:-1]])  # piece k also holds centre k-1
-        reach = F.relu((n * (prev - self.centre)[:, None]).sum(-1))
+        return n, F.relu((n * (prev - self.centre)[:, None]).sum(-1))
+
+    def halfspaces(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """-> the template in its own frame: (K, P, 3) unit normals, (K, P) offsets."""
+        n, reach = self._normals_reach()
         d = reach + CONVEX_MIN_EXTENT + F.softplus(self.extent)
         return n, d + (n * self.centre[:, None]).sum(-1)
 
