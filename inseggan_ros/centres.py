@@ -371,6 +371,7 @@ def piles_part(sim) -> str | None:
     (`simulate --object MODEL`) and, where it is not the model's rod, how it was made
     (`shape-fit --start discs`); None for a data set without a readable record."""
     from . import checkpoint
+    from .loop import _model_file
     from .sim.dataset import load_meta
     from .sim.learned import is_model_path
 
@@ -381,8 +382,8 @@ def piles_part(sim) -> str | None:
     if not is_model_path(obj):
         return f"the simulator's {obj} (the true part)"
     try:
-        state = checkpoint.load(Path(obj) / "model.pt" if Path(obj).is_dir() else obj)
-    except checkpoint.CheckpointError:
+        state = checkpoint.load(_model_file(obj))
+    except (ValueError, checkpoint.CheckpointError):  # gone since the piles were made
         return f"the learned template of `{obj}`"
     cfg, fit = state.get("model_config", {}), state.get("shape_fit")
     if cfg.get("renderer") == "spheres":
