@@ -390,6 +390,8 @@ def piles_part(sim) -> str | None:
         return f"the learned rod of `{obj}`"
     if fit and fit["config"].get("start") == "discs":
         how = f"fitted {fit['iteration']} iterations" if fit["iteration"] else "not fitted"
+        if fit.get("discs"):  # `shape-fit --match-piles`
+            how = "the widest sized by simulated piles, " + how
         return (f"the learned rod's profile as {cfg.get('pieces')} flat-ended discs, {how}, "
                 f"from `{obj}`")
     return (f"the learned template of `{obj}`, {cfg.get('pieces')} convex pieces of "

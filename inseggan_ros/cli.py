@@ -358,6 +358,9 @@ def cmd_shape_fit(args) -> int:
     cfg = ShapeFitConfig(pieces=args.pieces, walls=args.walls, iterations=args.iterations,
                          frames=args.frames, eval_every=args.eval_every, seed=args.seed,
                          thickness=args.thickness, start=args.start)
+    if args.match_piles and args.start != "discs":
+        raise ValueError("--match-piles sizes the head of a disc template; valid: with "
+                         "--start discs")
     file = _model_file(args.model)
     frames = _bag_or_data(args)
     report = None
@@ -371,8 +374,20 @@ def cmd_shape_fit(args) -> int:
         val_x = data_mod.load_sim_split(frames, "val", limit=cfg.val_frames)["x"]
         report = _shape_report(file, frames)
     t0 = time.perf_counter()
+    discs = None
+    if args.match_piles:
+        from .pilematch import PileMatchConfig, search
+
+        m = search(file, cfg, frames, train_x, args.out / "match",
+                   PileMatchConfig(seed=args.seed, workers=args.workers),
+                   progress=not args.quiet, report=report)
+        discs, best = m["discs"], m["best"]
+        print(f"head matched by {len(m['coarse']) + len(m['fine'])} variants' piles: length x"
+              f"{best['length']:g}, radius x{best['radius']:g} (heights' W1 {best['distance']:.4f}"
+              + (f"; IoU with the true part {best['iou']:.3f}" if "iou" in best else "")
+              + f"); {args.out / 'match' / 'match.png'}")
     s = fit_shape(file, train_x, args.out, cfg, val_x=val_x, progress=not args.quiet,
-                  report=report)
+                  report=report, discs=discs)
     first, last = s["first"] or {}, s["best"] or s["last"] or {}
     line = (f"shape fitted in {(time.perf_counter() - t0) / 60:.1f} min, {s['iterations']} "
             f"iterations on {s['frames']} frames")
@@ -593,7 +608,8 @@ def cmd_card_shape(args) -> int:
     from .modelcard import add_shape
 
     t0 = time.perf_counter()
-    f = add_shape(args.model, args.object, voxels=args.voxels)
+    f = add_shape(args.model, args.object, voxels=args.voxels,
+                  piles_template=args.piles_template)
     print(f"{args.model}: learned template vs the true {f['object']}: volumetric IoU "
           f"{f['iou']:.3f}, dimensions {f['dims_template_mm']} mm vs {f['dims_true_mm']} mm "
           f"({time.perf_counter() - t0:.0f} s); card, README and shape.png written")
@@ -787,6 +803,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--object", help="the true part (default: the card's object)")
     p.add_argument("--voxels", type=int, default=30,
                    help="voxels along the part's largest extent (30)")
+    p.add_argument("--piles-template", type=Path,
+                   help="the learned template the centre votes' piles were of, where it is not "
+                        "the model's own (shape-fit --start discs): measured and drawn too")
     p.set_defaults(func=cmd_card_shape)
 
     p = sub.add_parser("card-settings", help="ship a model with other test-time settings: "
@@ -973,6 +992,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the starting template: a box, every piece a copy (box), or the rod's "
                         "radius profile as a stack of PIECES flat-ended discs (discs: a head on a "
                         "shaft, a flange)")
+    p.add_argument("--match-piles", action="store_true",
+                   help="with --start discs: the widest disc's length and radius chosen by "
+                        "simulating piles of variants in the user's bin and keeping the one "
+                        "whose heights look most like the frames' (pilematch; OUT/match)")
+    p.add_argument("--workers", type=int, default=1,
+                   help="simulation processes of --match-piles (1)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_shape_fit)

@@ -644,15 +644,31 @@ def _shape_lines(card: dict) -> list[str]:
             f"length x width x height {dims} mm learned vs {true} mm true (mean relative error "
             f"{100 * f['dims_rel_error']:.1f} %). Top row the template, bottom row the part, "
             "seen from the top, the front and the side:", "",
-            "![learned shape vs true part](shape.png)", ""]
+            "![learned shape vs true part](shape.png)", "", *_piles_shape_lines(card)]
 
 
-def add_shape(model_dir, object_name: str | None = None, voxels: int = 30) -> dict:
+def _piles_shape_lines(card: dict) -> list[str]:
+    f = card.get("piles_shape")
+    if not f:
+        return []
+    dims = " x ".join(f"{v:.1f}" for v in f["dims_template_mm"])
+    true = " x ".join(f"{v:.1f}" for v in f["dims_true_mm"])
+    return [f"The template the centre votes' piles are of (`{f['template']}`, made from the "
+            f"template above: see Centre votes) against the same part: volumetric IoU "
+            f"{f['iou']:.3f}, {dims} mm vs {true} mm (mean relative error "
+            f"{100 * f['dims_rel_error']:.1f} %):", "",
+            "![piles' template vs true part](piles_shape.png)", ""]
+
+
+def add_shape(model_dir, object_name: str | None = None, voxels: int = 30,
+              piles_template=None) -> dict:
     """Measure a shipped model's learned template against the simulator's true part (the card's
     object, or `object_name`): `shape.fit` at `voxels` voxels along the part's largest extent,
     the three-view drawing as shape.png, the numbers as card["shape"], README.md written again;
     the folder is replaced atomically. The template's scale comes from the card's camera and the
-    model's crop, so no data set is needed. -> the shape record."""
+    model's crop, so no data set is needed. `piles_template`: the learned template (a model
+    file) the centre votes' piles were of, where it is not the model's own (the bolt's discs):
+    measured the same way as card["piles_shape"] and piles_shape.png. -> the shape record."""
     from . import checkpoint as ckpt
     from . import shape
     from .sim.camera import CameraConfig
@@ -668,17 +684,27 @@ def add_shape(model_dir, object_name: str | None = None, voxels: int = 30) -> di
     if state["model_config"].get("renderer") not in ("spheres", "convex"):
         raise ValueError(f"{model_dir}: renderer {state['model_config'].get('renderer')!r} has "
                          "no explicit template; valid: 'spheres' or 'convex'")
-    G = ckpt.build_models(state, model_dir / "model.pt")[1]
-    scale = shape.metres_per_unit(state["preprocess_config"], CameraConfig(**card["camera"]),
-                                  state["model_config"]["height_gain"])
     voxel = shape.part_voxel(name, voxels)
 
+    def measure(file: Path, drawing: Path) -> dict:
+        st = ckpt.load(file)
+        scale = shape.metres_per_unit(st["preprocess_config"], CameraConfig(**card["camera"]),
+                                      st["model_config"]["height_gain"])
+        G = ckpt.build_models(st, file)[1]
+        f = shape.evaluate_generator(G, name, scale, drawing, voxel=voxel)
+        del f["drawing"]  # the folder's drawing, not the temporary path
+        return f
+
     def write(tmp: Path) -> None:
+        drawn = ("card.json", "README.md", "shape.png") + (
+            ("piles_shape.png",) if piles_template is not None else ())
         for f in model_dir.iterdir():
-            if f.is_file() and f.name not in ("card.json", "README.md", "shape.png"):
+            if f.is_file() and f.name not in drawn:
                 shutil.copy2(f, tmp / f.name)
-        card["shape"] = shape.evaluate_generator(G, name, scale, tmp / "shape.png", voxel=voxel)
-        del card["shape"]["drawing"]  # the folder's shape.png, not the temporary path
+        card["shape"] = measure(model_dir / "model.pt", tmp / "shape.png")
+        if piles_template is not None:
+            card["piles_shape"] = {**measure(Path(piles_template), tmp / "piles_shape.png"),
+                                   "template": str(piles_template)}
         (tmp / "card.json").write_text(json.dumps(card, indent=2))
         (tmp / "README.md").write_text(card_markdown(card))
 

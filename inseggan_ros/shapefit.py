@@ -178,11 +178,12 @@ def rod_discs(G: SphereGenerator, pieces: int, walls: int, samples: int = 240
     return discs[::-1] if grown(discs[::-1]) < grown(discs) else discs
 
 
-def convex_from_rod(state: dict, cfg: ShapeFitConfig, source="checkpoint", x=None):
+def convex_from_rod(state: dict, cfg: ShapeFitConfig, source="checkpoint", x=None,
+                    discs=None):
     """A rod model's training checkpoint `state` -> (the convex model's state, G, E): the rod's
     encoder and pose decoder, the template the box `rod_box` gives (with the frames `x` when
-    `cfg.thickness` is "data"), or with `cfg.start` "discs" the discs `rod_discs` gives, about
-    the rod's axis.
+    `cfg.thickness` is "data"), or with `cfg.start` "discs" the discs `rod_discs` gives (or
+    `discs`, (x0, x1, r) each: `pilematch`), about the rod's axis.
 
     Why the thickness from the frames: a rod looks the same turned about its axis, so its
     poses say nothing of that turn, and a box as thick as it is wide looks the same under a
@@ -200,7 +201,7 @@ def convex_from_rod(state: dict, cfg: ShapeFitConfig, source="checkpoint", x=Non
     if cfg.start == "discs":  # about the pose's origin, as the rod's spheres are, lifted by
         # the floor contact instead of the rod's `lift`: so the rod's poses place them where
         # they placed it (the lift in the template's own frame would turn with each pose)
-        G.init_discs(rod_discs(rod, cfg.pieces, cfg.walls), 0.0)
+        G.init_discs(discs or rod_discs(rod, cfg.pieces, cfg.walls), 0.0)
     else:
         G.init_box(rod_box(rod, x if cfg.thickness == "data" else None))
     # without the rod encoder's distillation record: the encoder's next fit (the loop's) is
@@ -236,12 +237,13 @@ def _plot(history: list, path: Path) -> None:
 def fit_shape(model, train_x: np.ndarray, out, cfg: ShapeFitConfig = ShapeFitConfig(),
               val_x: np.ndarray | None = None, progress: bool = True,
               report: Callable[[ConvexGenerator], dict] | None = None,
-              device: str = "cpu") -> dict:
+              device: str = "cpu", discs=None) -> dict:
     """Fit a convex template to `train_x` ((N, 1, 64, 64) prepared frames, no labels) from the
     rod model `model` (a training checkpoint or model folder) -> summary (also
     out/summary.json); the model is its "model": out/best.pt (with `val_x`) or out/last.pt.
     Skipped when out/summary.json is there.
-    `device`: where to fit ("auto": a GPU when there is one)."""
+    `device`: where to fit ("auto": a GPU when there is one). `discs`: the starting discs
+    (`cfg.start` "discs") instead of `rod_discs`' (`pilematch.match_head`'s)."""
     out = Path(out)
     if (out / "summary.json").is_file() and (out / "last.pt").is_file():
         return json.loads((out / "summary.json").read_text())
@@ -254,7 +256,11 @@ def fit_shape(model, train_x: np.ndarray, out, cfg: ShapeFitConfig = ShapeFitCon
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(cfg.seed)
     x = torch.from_numpy(np.ascontiguousarray(train_x[:cfg.frames], dtype=np.float32))
-    state, G, E = convex_from_rod(checkpoint.load(src), cfg, src, x)
+    if discs is not None and cfg.start != "discs":
+        raise ValueError(f"discs given for a template started as {cfg.start!r}; valid: start "
+                         "'discs'")
+    state, G, E = convex_from_rod(checkpoint.load(src), cfg, src, x, discs)
+    given = [list(map(float, d)) for d in discs] if discs is not None else None
     xv = (torch.from_numpy(np.ascontiguousarray(val_x[:cfg.val_frames], dtype=np.float32))
           if val_x is not None and len(val_x) else None)
     device = checkpoint.pick_device(device)
@@ -269,7 +275,8 @@ def fit_shape(model, train_x: np.ndarray, out, cfg: ShapeFitConfig = ShapeFitCon
     if (out / "last.pt").is_file():
         saved = checkpoint.load(out / "last.pt")
         rec = saved["shape_fit"]
-        if rec["config"] != asdict(cfg) or rec["source"] != str(src):
+        if (rec["config"] != asdict(cfg) or rec["source"] != str(src)
+                or rec.get("discs") != given):
             raise ValueError(f"{out}: holds a shape fit of {rec['source']} with "
                              f"{rec['config']}; valid: the same model and config to resume, "
                              "or another --out")
@@ -281,7 +288,8 @@ def fit_shape(model, train_x: np.ndarray, out, cfg: ShapeFitConfig = ShapeFitCon
     start = time.monotonic()
 
     def save(name: str = "last.pt") -> None:
-        rec = {"config": asdict(cfg), "source": str(src), "iteration": it, "history": history,
+        rec = {"config": asdict(cfg), "source": str(src), "discs": given, "iteration": it,
+               "history": history,
                "seconds": before + time.monotonic() - start, "optimizer": opt.state_dict(),
                "generator_rng": gen.get_state()}
         checkpoint.save(out / name, {
@@ -345,7 +353,7 @@ def fit_shape(model, train_x: np.ndarray, out, cfg: ShapeFitConfig = ShapeFitCon
     vals = [h for h in history if h["kind"] == "val"]
     scored = [h for h in vals if "recon_l1" in h]
     best = min(scored, key=lambda h: h["recon_l1"]) if scored else None
-    summary = {"source": str(src), "config": asdict(cfg), "iterations": it,
+    summary = {"source": str(src), "config": asdict(cfg), "discs": given, "iterations": it,
                "seconds": round(before + time.monotonic() - start, 1), "frames": len(x),
                "first": vals[0] if vals else None, "last": vals[-1] if vals else None,
                "best": best, "model": str(out / ("best.pt" if best else "last.pt"))}

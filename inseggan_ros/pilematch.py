@@ -1,0 +1,261 @@
+"""A disc template's head sized by how its simulated piles look: no label, no gradient.
+
+`shapefit.rod_discs` cuts a learned rod's radius profile into flat-ended discs, but the rod's
+spheres blur a step such as a bolt's head over a sphere's length: the bolt's discs get a head
+2.4 times as long and 0.8 times as wide as the bolt's, and fitting them to the frames by
+reconstruction moves them further away (docs/experiments.md, 2026-11-29, evening). What the
+frames do show is how parts of a shape come to rest in a pile: a bolt lies tilted on its head,
+so the head's width sets the heights of the frames' parts, and its length the area each covers.
+
+So the widest disc (a head, a flange) is scaled in length (its outer end kept where it is an
+end, the neighbouring disc taking up the difference: the template as long as before) and in
+radius, over a grid. Each variant is piled `piles` times by the physics simulator in the
+user's bin, seen through the user's camera, and cut as the user's frames are; the variant
+whose frames' heights (every pixel of the bin's crop, the floor included: the parts' heights
+and their visible area at once) are distributed nearest to the user's frames' heights
+(1-Wasserstein) is kept. A coarse grid first, then a finer one about its best, with more
+piles (the distances of the best few differ by little more than their sampling noise).
+
+    inseggan shape-fit --model models/bolt --data data/bolt --out runs/bolt_head \
+        --start discs --pieces 2 --walls 8 --iterations 0 --match-piles
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+from scipy.stats import wasserstein_distance
+from tqdm import tqdm
+
+from .evaluate import write_json
+from .model import CONVEX_MIN_EXTENT
+
+Discs = list[tuple[float, float, float]]
+
+
+@dataclass(frozen=True)
+class PileMatchConfig:
+    lengths: tuple[float, ...] = (0.4, 0.55, 0.7, 0.85, 1.0)  # the head's length, x the discs'
+    radii: tuple[float, ...] = (0.9, 1.0, 1.1, 1.2, 1.3)  # its radius, x the discs'
+    piles: int = 200  # simulated piles of each variant of the coarse grid
+    fine_piles: int = 600  # of the fine grid: half the coarse steps about its best, 3 x 3
+    # (0: no fine grid)
+    frames: int = 1500  # of the user's frames, at most
+    seed: int = 0  # of the piles (every variant is piled from the same scene seeds)
+    workers: int = 1  # simulation processes
+
+    def __post_init__(self):
+        for name in ("lengths", "radii"):
+            v = getattr(self, name)
+            if len(v) < 2 or any(f <= 0 for f in v) or list(v) != sorted(set(v)):
+                raise ValueError(f"{name} {v!r} invalid; valid: two or more increasing factors "
+                                 "above 0")
+        for name in ("piles", "frames", "workers"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} {getattr(self, name)!r} invalid; valid: 1 or more")
+        if self.fine_piles < 0:
+            raise ValueError(f"fine_piles {self.fine_piles!r} invalid; valid: 0 (no fine grid) "
+                             "or more")
+
+
+def heights(x: np.ndarray) -> np.ndarray:
+    """Frames (N, 1, H, W) as the model sees them -> every pixel's height, the floor's too."""
+    return np.asarray(x, np.float32).ravel()
+
+
+def head_variant(discs: Discs, length: float, radius: float) -> Discs:
+    """`discs` with the widest one's length times `length` and radius times `radius`: an end
+    disc keeps its outer end, and its neighbour takes up the difference; a disc between two
+    keeps its middle and both neighbours take up half each."""
+    d = [list(s) for s in discs]
+    k = int(np.argmax([s[2] for s in d]))
+    x0, x1, r = d[k]
+    grow = (x1 - x0) * (length - 1)
+    if k == 0 and len(d) > 1:
+        d[k][1] += grow
+        d[k + 1][0] = d[k][1]
+    elif k == len(d) - 1 and len(d) > 1:
+        d[k][0] -= grow
+        d[k - 1][1] = d[k][0]
+    else:
+        d[k][0], d[k][1] = x0 - grow / 2, x1 + grow / 2
+        if k > 0:
+            d[k - 1][1] = d[k][0]
+        if k + 1 < len(d):
+            d[k + 1][0] = d[k][1]
+    d[k][2] = r * radius
+    if any(b - a <= 2 * CONVEX_MIN_EXTENT for a, b, _ in d):
+        raise ValueError(f"head length x{length} leaves a disc shorter than "
+                         f"{2 * CONVEX_MIN_EXTENT} template units; valid: factors that keep "
+                         "every disc of the template")
+    return [tuple(float(v) for v in s) for s in d]
+
+
+def _fine(values: tuple[float, ...], best: float) -> tuple[float, ...]:
+    """Three values about `best`, half the grid's step to each side of it."""
+    i = values.index(best)
+    lo = (values[i] - values[i - 1]) / 2 if i > 0 else (values[1] - values[0]) / 2
+    hi = (values[i + 1] - values[i]) / 2 if i + 1 < len(values) else lo
+    return tuple(round(v, 4) for v in (best - lo, best, best + hi) if v > 0)
+
+
+def match_head(discs: Discs, user_x: np.ndarray, make: Callable[[Discs, Path], Path],
+               piles: Callable[[Path, Path, int, int], np.ndarray], out,
+               cfg: PileMatchConfig = PileMatchConfig(), progress: bool = True,
+               report: Callable[[Path], dict] | None = None) -> dict:
+    """The head of `discs` sized by pile statistics -> summary (also out/summary.json): every
+    variant measured and the discs kept ("discs"). `user_x`: the user's frames (N, 1, H, W);
+    `make(discs, file)` writes a model with those discs to `file`; `piles(model_file, folder,
+    count, seed)` simulates `count` piles of it into `folder` and returns their frames as the
+    user's are cut. Each variant's result is kept in out/variants.jsonl as it is measured, so a
+    killed search resumes where it stopped (and one with other grids reuses the variants
+    measured alike); `report(model_file)` (a library part's true shape,
+    for the record only) is added to each."""
+    out = Path(out)
+    config = json.loads(json.dumps(asdict(cfg)))  # as summary.json holds it
+    start = [list(map(float, s)) for s in discs]
+    if (out / "discs.json").is_file() and json.loads((out / "discs.json").read_text()) != start:
+        raise ValueError(f"{out}: holds a search from other discs; valid: the same rod and "
+                         "pieces to resume, or another output folder")
+    if (out / "summary.json").is_file():
+        finished = json.loads((out / "summary.json").read_text())
+        if finished["config"] == config:
+            return finished  # another config searches again, from the variants kept
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / "discs.json", start)
+    user = np.asarray(user_x[:cfg.frames])
+    ref = heights(user)
+    log = out / "variants.jsonl"
+    done = {}  # a variant measured with the same piles and user frames is not measured again
+    if log.is_file():
+        for line in log.read_text().splitlines():
+            row = json.loads(line)
+            done[(row["length"], row["radius"], row["piles"], row["seed"], row["frames"])] = row
+
+    def measure(stage: str, grid: list[tuple[float, float]], count: int) -> list[dict]:
+        rows = []
+        for a, b in tqdm(grid, desc=f"piles ({stage})", unit="variant", disable=not progress):
+            key = (a, b, count, cfg.seed, len(user))
+            if key not in done:
+                name = f"len{a:g}_rad{b:g}_piles{count}"
+                file = make(head_variant(discs, a, b), out / "variants" / f"{name}.pt")
+                sim = piles(file, out / "piles" / name, count, cfg.seed)
+                row = {"stage": stage, "length": a, "radius": b, "piles": count,
+                       "seed": cfg.seed, "frames": len(user),
+                       "distance": float(wasserstein_distance(heights(sim), ref)),
+                       **(report(file) if report else {})}
+                with open(log, "a") as f:
+                    f.write(json.dumps(row) + "\n")
+                done[key] = row
+            rows.append({**done[key], "stage": stage})
+        return rows
+
+    def valid(a: float, b: float) -> bool:
+        try:
+            head_variant(discs, a, b)
+        except ValueError:  # a fine step below the coarse grid's shortest head
+            return False
+        return True
+
+    coarse = measure("coarse", [(a, b) for a in cfg.lengths for b in cfg.radii], cfg.piles)
+    best = min(coarse, key=lambda r: r["distance"])
+    fine = []
+    if cfg.fine_piles:
+        fine = measure("fine", [(a, b) for a in _fine(cfg.lengths, best["length"])
+                                for b in _fine(cfg.radii, best["radius"]) if valid(a, b)],
+                       cfg.fine_piles)
+        best = min(fine, key=lambda r: r["distance"])
+    summary = {"config": config, "discs_before": start,
+               "coarse": coarse, "fine": fine, "best": best,
+               "discs": [list(s) for s in head_variant(discs, best["length"], best["radius"])]}
+    _plot(coarse, cfg, out / "match.png")
+    write_json(out / "summary.json", summary)
+    return summary
+
+
+def _plot(rows: list[dict], cfg: PileMatchConfig, path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    grid = np.array([[next(r["distance"] for r in rows if r["length"] == a and r["radius"] == b)
+                      for b in cfg.radii] for a in cfg.lengths])
+    fig, ax = plt.subplots(figsize=(5, 4))
+    im = ax.imshow(grid, cmap="viridis_r", origin="lower")
+    ax.set_xticks(range(len(cfg.radii)), [f"{v:g}" for v in cfg.radii])
+    ax.set_yticks(range(len(cfg.lengths)), [f"{v:g}" for v in cfg.lengths])
+    ax.set_xlabel("head radius (x the discs')")
+    ax.set_ylabel("head length (x the discs')")
+    ax.set_title("piles' heights vs the frames' (W1)")
+    fig.colorbar(im, ax=ax)
+    fig.tight_layout()
+    tmp = path.with_suffix(".tmp.png")
+    fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+    tmp.replace(path)
+
+
+def disc_model(rod_state: dict, shape_cfg, discs: Discs, file, source="checkpoint") -> Path:
+    """The rod model `rod_state` with the disc template `discs` (`shapefit.convex_from_rod`)
+    written to `file`: a model `simulate --object` piles up."""
+    from . import checkpoint
+    from .shapefit import convex_from_rod
+
+    new, G, E = convex_from_rod(rod_state, shape_cfg, source, discs=discs)
+    return checkpoint.save(file, {
+        **new, "generator": {k: v.detach().cpu() for k, v in G.state_dict().items()},
+        "encoder": {k: v.detach().cpu() for k, v in E.state_dict().items()}})
+
+
+def search(rod_file, shape_cfg, data, user_x: np.ndarray, out,
+           cfg: PileMatchConfig = PileMatchConfig(), progress: bool = True,
+           report: Callable | None = None) -> dict:
+    """`match_head` for the discs `shape-fit --start discs` cuts from the rod model `rod_file`
+    (`shapefit.convex_from_rod` with `shape_cfg`): the piles simulated as the user's frames
+    were taken, `data` a simulated data set (its camera, noise and bin) or a
+    `loop.BagFrames` (the camera and bin estimated from the bag), and cut as those frames are.
+    `report(G)`: a library part's fidelity (`cli._shape_report`), for the record only."""
+    import shutil
+
+    from . import checkpoint
+    from . import data as data_mod
+    from .loop import BagFrames
+    from .preprocess import PreprocessConfig
+    from .shapefit import rod_discs
+    from .sim.dataset import DatasetSpec, generate, load_meta
+    from .sim.scene import SceneConfig
+
+    rod_file = Path(rod_file)
+    state = checkpoint.load(rod_file)
+    if shape_cfg.start != "discs":
+        raise ValueError(f"pile matching sizes the head of a disc template; valid: start "
+                         f"'discs', not {shape_cfg.start!r}")
+    bag = isinstance(data, BagFrames)
+    view = ({"cfg": PreprocessConfig.from_dict(state["preprocess_config"]), "as_given": True}
+            if bag else {})
+    meta = None if bag else load_meta(data)
+
+    def make(discs: Discs, file: Path) -> Path:
+        return disc_model(state, shape_cfg, discs, file, rod_file)
+
+    def piles(file: Path, folder: Path, count: int, seed: int) -> np.ndarray:
+        shutil.rmtree(folder, ignore_errors=True)  # of a search killed while simulating it
+        scene = (data.scene(file) if bag else
+                 SceneConfig.from_dict({**meta["scene"], "object": str(file)}))
+        generate(DatasetSpec(scene, {"train": 0, "val": 0, "test": count}, seed=seed), folder,
+                 workers=cfg.workers, progress=False)
+        x = data_mod.load_sim_split(folder, "test", **view)["x"]
+        shutil.rmtree(folder)  # the distance is kept, the piles are not needed again
+        return x
+
+    def fidelity(file: Path) -> dict:
+        f = report(checkpoint.build_models(checkpoint.load(file), file)[1])
+        return {"iou": f["iou"], "dims_mm": f["dims_template_mm"]}
+
+    _, rod, _ = checkpoint.build_models(state, rod_file)
+    discs = rod_discs(rod, shape_cfg.pieces, shape_cfg.walls)
+    return match_head(discs, user_x, make, piles, out, cfg, progress,
+                      fidelity if report else None)

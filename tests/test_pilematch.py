@@ -1,0 +1,111 @@
+"""`shape-fit --match-piles` (`inseggan_ros.pilematch`): a disc template's head sized by how
+simulated piles of its variants look against the user's frames. Frames of a bolt-like part
+with a short, wide head are found so, from discs whose head is long and narrow."""
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from inseggan_ros import checkpoint
+from inseggan_ros.data import load_sim_split
+from inseggan_ros.pilematch import PileMatchConfig, disc_model, head_variant, search
+from inseggan_ros.shapefit import ShapeFitConfig, rod_discs
+from inseggan_ros.sim.dataset import DatasetSpec, generate
+from inseggan_ros.sim.scene import SceneConfig
+
+from conftest import REPO
+
+ROD = REPO / "models" / "bolt" / "model.pt"  # a rod of 12 spheres with a rounded head
+SHAPE = ShapeFitConfig(pieces=2, walls=8, iterations=0, start="discs")
+
+
+def test_the_head_variant_keeps_the_template_s_length_and_its_other_disc():
+    discs = [(-1.0, -0.6, 0.3), (-0.6, 1.0, 0.12)]
+    (a0, a1, ra), (b0, b1, rb) = head_variant(discs, 0.5, 1.2)
+    assert (a0, a1, b0, b1) == pytest.approx((-1.0, -0.8, -0.8, 1.0))
+    assert ra == pytest.approx(0.36) and rb == pytest.approx(0.12)
+    (a0, a1, _), (b0, b1, _) = head_variant([(-1.0, 0.6, 0.12), (0.6, 1.0, 0.3)], 0.5, 1.0)
+    assert (a0, a1, b0, b1) == pytest.approx((-1.0, 0.8, 0.8, 1.0))  # the head last
+    middle = head_variant([(-1.0, -0.2, 0.1), (-0.2, 0.2, 0.3), (0.2, 1.0, 0.1)], 2.0, 1.0)
+    np.testing.assert_allclose([m[:2] for m in middle], [(-1.0, -0.4), (-0.4, 0.4), (0.4, 1.0)])
+    with pytest.raises(ValueError, match="shorter"):
+        head_variant(discs, 0.001, 1.0)
+    with pytest.raises(ValueError, match="increasing"):
+        PileMatchConfig(lengths=(1.0, 0.5))
+
+
+def test_piles_choose_the_head_the_frames_were_made_of_and_a_search_resumes(tmp_path):
+    state = checkpoint.load(ROD)
+    _, rod, _ = checkpoint.build_models(state, ROD)
+    discs = rod_discs(rod, 2, 8)
+    truth = disc_model(state, SHAPE, head_variant(discs, 0.4, 1.3), tmp_path / "truth.pt", ROD)
+    user = tmp_path / "user"  # the user's frames: piles of a short, wide head
+    generate(DatasetSpec(SceneConfig(object=str(truth), instances=5),
+                         {"train": 60, "val": 0, "test": 0}, seed=5), user, progress=False)
+    x = load_sim_split(user, "train")["x"]
+    cfg = PileMatchConfig(lengths=(0.4, 1.0), radii=(1.0, 1.3), piles=32, fine_piles=0, seed=1)
+    out = tmp_path / "match"
+    s = search(ROD, SHAPE, user, x, out, cfg, progress=False)
+    assert (s["best"]["length"], s["best"]["radius"]) == (0.4, 1.3), s["coarse"]
+    (head, shaft), (head0, shaft0) = (sorted(d, key=lambda d: -d[2]) for d in
+                                      (s["discs"], s["discs_before"]))
+    assert head[2] == pytest.approx(1.3 * head0[2]) and shaft[2] == shaft0[2]
+    assert head[1] - head[0] == pytest.approx(0.4 * (head0[1] - head0[0]))
+    assert (out / "match.png").is_file() and not any((out / "piles").iterdir())
+    assert search(ROD, SHAPE, user, x, out, cfg, progress=False) == s  # finished: not redone
+    # with the fine grid after it: the coarse variants are not piled again; the fine grid is
+    # about the coarse best, and its best is kept
+    fine = search(ROD, SHAPE, user, x, out, replace(cfg, fine_piles=8), progress=False)
+    rows = [json.loads(line) for line in (out / "variants.jsonl").read_text().splitlines()]
+    assert len(rows) == 4 + len(fine["fine"]) and fine["coarse"] == s["coarse"]
+    assert {r["length"] for r in fine["fine"]} <= {0.1, 0.4, 0.7}
+    assert {r["radius"] for r in fine["fine"]} == {1.15, 1.3, 1.45}
+    assert fine["best"] == min(fine["fine"], key=lambda r: r["distance"])
+    with pytest.raises(ValueError, match="other discs"):  # not resumed into another's folder
+        search(ROD, replace(SHAPE, pieces=3), user, x, out, cfg, progress=False)
+    with pytest.raises(ValueError, match="discs"):
+        search(ROD, ShapeFitConfig(), user, x, tmp_path / "box", cfg)
+
+
+def test_a_recording_s_piles_are_seen_through_the_camera_its_frames_give(tmp_path):
+    """From a bag (depth and CameraInfo, no labels): the variants are piled in the bin and seen
+    through the camera estimated from the recording, and cut as its frames are."""
+    from inseggan_ros.loop import BagFrames
+    from inseggan_ros.preprocess import PreprocessConfig
+
+    bag = BagFrames(REPO / "bags" / "bolt_sim", 5)
+    prep = PreprocessConfig.from_dict(checkpoint.load(ROD)["preprocess_config"])
+    x = bag.frames(prep)[0]["x"]
+    cfg = PileMatchConfig(lengths=(0.5, 1.0), radii=(1.0, 1.2), piles=3, fine_piles=0)
+    s = search(ROD, SHAPE, bag, x, tmp_path / "match", cfg, progress=False)
+    assert len(s["coarse"]) == 4 and s["best"] in s["coarse"]
+    assert all(0 < r["distance"] < 2 and r["frames"] == len(x) for r in s["coarse"])
+
+
+def test_the_card_draws_the_piles_template_beside_the_models_own(tmp_path):
+    """`inseggan card-shape --piles-template`: the template a model's centre votes were taught
+    on piles of is measured against the true part and drawn on the card too; a later
+    card-shape without it keeps them; the weights are untouched."""
+    import shutil
+
+    from conftest import run_cli
+    from inseggan_ros.modelcard import card_markdown
+
+    folder = shutil.copytree(REPO / "models" / "bolt", tmp_path / "bolt")
+    weights = (folder / "model.pt").read_bytes()
+    state = checkpoint.load(ROD)
+    discs = rod_discs(checkpoint.build_models(state, ROD)[1], 2, 8)
+    file = disc_model(state, SHAPE, head_variant(discs, 0.5, 1.2), tmp_path / "discs.pt", ROD)
+    run_cli("card-shape", folder, "--voxels", "8", "--piles-template", file, check=True)
+    card = json.loads((folder / "card.json").read_text())
+    f = card["piles_shape"]
+    assert f["template"] == str(file) and 0 < f["iou"] <= 1 and f["object"] == "bolt"
+    assert f["iou"] != card["shape"]["iou"]  # the discs, not the model's rod
+    assert (folder / "piles_shape.png").stat().st_size > 0
+    readme = (folder / "README.md").read_text()
+    assert readme == card_markdown(card) and "piles_shape.png" in readme
+    run_cli("card-shape", folder, "--voxels", "8", check=True)
+    again = json.loads((folder / "card.json").read_text())
+    assert again["piles_shape"] == f and (folder / "piles_shape.png").is_file()
+    assert (folder / "model.pt").read_bytes() == weights
