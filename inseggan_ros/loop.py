@@ -434,13 +434,11 @@ def _simulate_and_fit(file: Path, data, meta: dict | None, view: dict, sim: Path
     from . import data as data_mod
     from .distill import DistillConfig, distill
     from .sim.dataset import DatasetSpec, generate
-    from .sim.scene import SceneConfig
 
     t0 = time.monotonic()
     if not (sim / "meta.json").is_file():
-        scene = (SceneConfig.from_dict({**meta["scene"], "object": str(file)}) if meta
-                 is not None else data.scene(file))
-        spec = DatasetSpec(scene, {"train": cfg.scenes, "val": cfg.val_scenes, "test": 0},
+        spec = DatasetSpec(pile_scene(data, meta, file),
+                           {"train": cfg.scenes, "val": cfg.val_scenes, "test": 0},
                            seed=cfg.seed)
         generate(spec, sim, workers=cfg.workers, progress=progress)
     seconds["simulate" + tag] = round(time.monotonic() - t0, 1)
@@ -464,6 +462,28 @@ def _simulate_and_fit(file: Path, data, meta: dict | None, view: dict, sim: Path
                 train_labels=train["labels"], user_x=user)
     seconds["encoder" + tag] = round(time.monotonic() - t0, 1)
     return encoder / "best.pt"
+
+
+def pile_scene(data, meta: dict | None, part) -> "SceneConfig":
+    """The simulator's scene for piles of `part` as the user's frames were taken: a data set's
+    own scene (`meta`, its meta.json) with the part swapped, or (`meta` None) the bin and
+    camera a bag's frames give (`BagFrames.scene`)."""
+    from .sim.scene import SceneConfig
+
+    if meta is None:
+        return data.scene(part)
+    return SceneConfig.from_dict({**meta["scene"], "object": str(part)})
+
+
+def pile_view(data, state: dict) -> dict:
+    """How simulated piles are cut (`data.load_sim_split` keywords): as a data set's frames,
+    with its known bin and floor ({}), or for a bag as the model (checkpoint `state`) cuts
+    the bag's frames."""
+    from .preprocess import PreprocessConfig
+
+    if not isinstance(data, BagFrames):
+        return {}
+    return {"cfg": PreprocessConfig.from_dict(state["preprocess_config"]), "as_given": True}
 
 
 def _user_frames(data, prep, split: str, limit: int | None, progress: bool = False) -> dict:
@@ -607,7 +627,6 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
     folder, or `BagFrames`) -> summary (also out/summary.json). With `model` None the shape is
     learned first with `train_cfg`."""
     from . import checkpoint
-    from .preprocess import PreprocessConfig
     from .sim.dataset import load_meta
 
     if (model is None) == (train_cfg is None):
@@ -649,10 +668,7 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
     file = _model_file(model).resolve()
     if bag is None:
         _same_view(file, data)
-        view = {}  # the piles cut as the data set's frames: its known bin and floor
-    else:  # the piles cut as the model cuts the bag's frames
-        view = {"cfg": PreprocessConfig.from_dict(checkpoint.load(file)["preprocess_config"]),
-                "as_given": True}
+    view = pile_view(data, checkpoint.load(file))
 
     if thickness != "off":
         t0 = time.monotonic()

@@ -623,12 +623,17 @@ def _bag_line(card: dict) -> list[str]:
                f"{full['inseggan']:.3f}, K-Means {full['kmeans']:.3f}" if full else "") + ".", ""]
 
 
+def _dims(f: dict) -> tuple[str, str]:
+    """A shape record's learned and true dimensions, "L x W x H" in mm each."""
+    return tuple(" x ".join(f"{v:.1f}" for v in f[k])
+                 for k in ("dims_template_mm", "dims_true_mm"))
+
+
 def _shape_lines(card: dict) -> list[str]:
     f = card.get("shape")
     if not f:
         return []
-    dims = " x ".join(f"{v:.1f}" for v in f["dims_template_mm"])
-    true = " x ".join(f"{v:.1f}" for v in f["dims_true_mm"])
+    dims, true = _dims(f)
     fit = card.get("shape_fit")
     how = ([f"The template is {fit['config']['pieces']} convex piece(s) fitted by "
             f"reconstruction of the unlabelled training frames (`inseggan shape-fit`, "
@@ -651,8 +656,7 @@ def _piles_shape_lines(card: dict) -> list[str]:
     f = card.get("piles_shape")
     if not f:
         return []
-    dims = " x ".join(f"{v:.1f}" for v in f["dims_template_mm"])
-    true = " x ".join(f"{v:.1f}" for v in f["dims_true_mm"])
+    dims, true = _dims(f)
     return [f"The template the centre votes' piles are of (`{f['template']}`, made from the "
             f"template above: see Centre votes) against the same part: volumetric IoU "
             f"{f['iou']:.3f}, {dims} mm vs {true} mm (mean relative error "

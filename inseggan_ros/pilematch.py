@@ -222,31 +222,26 @@ def search(rod_file, shape_cfg, data, user_x: np.ndarray, out,
 
     from . import checkpoint
     from . import data as data_mod
-    from .loop import BagFrames
-    from .preprocess import PreprocessConfig
+    from .loop import BagFrames, pile_scene, pile_view
     from .shapefit import rod_discs
     from .sim.dataset import DatasetSpec, generate, load_meta
-    from .sim.scene import SceneConfig
 
     rod_file = Path(rod_file)
     state = checkpoint.load(rod_file)
     if shape_cfg.start != "discs":
         raise ValueError(f"pile matching sizes the head of a disc template; valid: start "
                          f"'discs', not {shape_cfg.start!r}")
-    bag = isinstance(data, BagFrames)
-    view = ({"cfg": PreprocessConfig.from_dict(state["preprocess_config"]), "as_given": True}
-            if bag else {})
-    meta = None if bag else load_meta(data)
+    view = pile_view(data, state)
+    meta = None if isinstance(data, BagFrames) else load_meta(data)
 
     def make(discs: Discs, file: Path) -> Path:
         return disc_model(state, shape_cfg, discs, file, rod_file)
 
     def piles(file: Path, folder: Path, count: int, seed: int) -> np.ndarray:
         shutil.rmtree(folder, ignore_errors=True)  # of a search killed while simulating it
-        scene = (data.scene(file) if bag else
-                 SceneConfig.from_dict({**meta["scene"], "object": str(file)}))
-        generate(DatasetSpec(scene, {"train": 0, "val": 0, "test": count}, seed=seed), folder,
-                 workers=cfg.workers, progress=False)
+        spec = DatasetSpec(pile_scene(data, meta, file), {"train": 0, "val": 0, "test": count},
+                           seed=seed)
+        generate(spec, folder, workers=cfg.workers, progress=False)
         x = data_mod.load_sim_split(folder, "test", **view)["x"]
         shutil.rmtree(folder)  # the distance is kept, the piles are not needed again
         return x
