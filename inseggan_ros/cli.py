@@ -48,6 +48,14 @@ def _vote_scales(text: str) -> tuple[int, ...]:
     return scales
 
 
+def _numbers(text: str) -> tuple[float, ...]:
+    try:
+        parts = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not numbers like 0.4,0.7,1") from None
+    return parts
+
+
 def _offset(text: str) -> tuple[float, float]:
     try:
         parts = tuple(float(x) for x in text.split(","))
@@ -358,9 +366,14 @@ def cmd_shape_fit(args) -> int:
     cfg = ShapeFitConfig(pieces=args.pieces, walls=args.walls, iterations=args.iterations,
                          frames=args.frames, eval_every=args.eval_every, seed=args.seed,
                          thickness=args.thickness, start=args.start)
+    grid = {"lengths": args.pile_lengths, "radii": args.pile_radii, "shafts": args.pile_shafts,
+            "offsets": args.pile_offsets}
     if args.match_piles and args.start != "discs":
         raise ValueError("--match-piles sizes the head of a disc template; valid: with "
                          "--start discs")
+    if not args.match_piles and any(v is not None for v in grid.values()):
+        raise ValueError("--pile-lengths, --pile-radii, --pile-shafts and --pile-offsets are "
+                         "--match-piles' grid; valid: with --match-piles")
     file = _model_file(args.model)
     frames = _bag_or_data(args)
     report = None
@@ -379,11 +392,15 @@ def cmd_shape_fit(args) -> int:
         from .pilematch import PileMatchConfig, search
 
         m = search(file, cfg, frames, train_x, args.out / "match",
-                   PileMatchConfig(seed=args.seed, workers=args.workers),
+                   PileMatchConfig(seed=args.seed, workers=args.workers,
+                                   **{k: v for k, v in grid.items() if v is not None}),
                    progress=not args.quiet, report=report)
         discs, best = m["discs"], m["best"]
         print(f"head matched by {len(m['coarse']) + len(m['fine'])} variants' piles: length x"
-              f"{best['length']:g}, radius x{best['radius']:g} (heights' W1 {best['distance']:.4f}"
+              f"{best['length']:g}, radius x{best['radius']:g}"
+              + (f", shaft x{best['shaft']:g}" if best.get("shaft", 1) != 1 else "")
+              + (f", offset {best['offset']:g}" if best.get("offset") else "")
+              + f" (heights' W1 {best['distance']:.4f}"
               + (f"; IoU with the true part {best['iou']:.3f}" if "iou" in best else "")
               + f"); {args.out / 'match' / 'match.png'}")
     s = fit_shape(file, train_x, args.out, cfg, val_x=val_x, progress=not args.quiet,
@@ -996,6 +1013,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --start discs: the widest disc's length and radius chosen by "
                         "simulating piles of variants in the user's bin and keeping the one "
                         "whose heights look most like the frames' (pilematch; OUT/match)")
+    p.add_argument("--pile-lengths", type=_numbers,
+                   help="--match-piles: the widest disc's length factors (0.4,0.55,0.7,0.85,1)")
+    p.add_argument("--pile-radii", type=_numbers,
+                   help="--match-piles: its radius factors (0.9,1,1.1,1.2,1.3)")
+    p.add_argument("--pile-shafts", type=_numbers,
+                   help="--match-piles: the other discs' radius factors (1; a flange made on a "
+                        "uniform rod: e.g. 0.5,0.65,0.8,1)")
+    p.add_argument("--pile-offsets", type=_numbers,
+                   help="--match-piles: the middle disc moved along the axis, fractions of the "
+                        "template's length (0)")
     p.add_argument("--workers", type=int, default=1,
                    help="simulation processes of --match-piles (1)")
     p.add_argument("--seed", type=int, default=0)

@@ -16,11 +16,21 @@ and their visible area at once) are distributed nearest to the user's frames' he
 (1-Wasserstein) is kept. A coarse grid first, then a finer one about its best, with more
 piles (the distances of the best few differ by little more than their sampling noise).
 
+A rod whose spheres are all alike has no step for the cut to find: a flange (the pin
+connector's) is then made, not resized. Three discs, the middle one the widest; the grid also
+scales the other discs' radius (`shafts`: the shaft as narrow as the flange is wide) and moves
+the middle disc along the axis (`offsets`). The fine grid is over length and radius at the
+coarse best's shaft and offset.
+
     inseggan shape-fit --model models/bolt --data data/bolt --out runs/bolt_head \
         --start discs --pieces 2 --walls 8 --iterations 0 --match-piles
+    inseggan shape-fit --model models/pin_connector --data data/pin_connector \
+        --out runs/pin_flange --start discs --pieces 3 --walls 8 --iterations 0 --match-piles \
+        --pile-lengths 0.15,0.25,0.4 --pile-shafts 0.5,0.65,0.8,1 --pile-offsets 0,0.15
 """
 from __future__ import annotations
 
+import itertools
 import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -40,6 +50,8 @@ Discs = list[tuple[float, float, float]]
 class PileMatchConfig:
     lengths: tuple[float, ...] = (0.4, 0.55, 0.7, 0.85, 1.0)  # the head's length, x the discs'
     radii: tuple[float, ...] = (0.9, 1.0, 1.1, 1.2, 1.3)  # its radius, x the discs'
+    shafts: tuple[float, ...] = (1.0,)  # the other discs' radius, x theirs (a flange's shaft)
+    offsets: tuple[float, ...] = (0.0,)  # a disc between two: its middle moved, x the length
     piles: int = 200  # simulated piles of each variant of the coarse grid
     fine_piles: int = 600  # of the fine grid: half the coarse steps about its best, 3 x 3
     # (0: no fine grid)
@@ -53,6 +65,13 @@ class PileMatchConfig:
             if len(v) < 2 or any(f <= 0 for f in v) or list(v) != sorted(set(v)):
                 raise ValueError(f"{name} {v!r} invalid; valid: two or more increasing factors "
                                  "above 0")
+        if (not self.shafts or any(f <= 0 for f in self.shafts)
+                or list(self.shafts) != sorted(set(self.shafts))):
+            raise ValueError(f"shafts {self.shafts!r} invalid; valid: one or more increasing "
+                             "factors above 0")
+        if not self.offsets or list(self.offsets) != sorted(set(self.offsets)):
+            raise ValueError(f"offsets {self.offsets!r} invalid; valid: one or more increasing "
+                             "fractions of the template's length")
         for name in ("piles", "frames", "workers"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} {getattr(self, name)!r} invalid; valid: 1 or more")
@@ -66,14 +85,23 @@ def heights(x: np.ndarray) -> np.ndarray:
     return np.asarray(x, np.float32).ravel()
 
 
-def head_variant(discs: Discs, length: float, radius: float) -> Discs:
-    """`discs` with the widest one's length times `length` and radius times `radius`: an end
-    disc keeps its outer end, and its neighbour takes up the difference; a disc between two
-    keeps its middle and both neighbours take up half each."""
+def head_variant(discs: Discs, length: float, radius: float, shaft: float = 1.0,
+                 offset: float = 0.0) -> Discs:
+    """`discs` with the widest one's length times `length` and radius times `radius`, every
+    other disc's radius times `shaft`, and, for a disc between two, its middle moved along the
+    axis by `offset` times the template's length. An end disc keeps its outer end, and its
+    neighbour takes up the difference; a disc between two keeps its middle (then moved) and
+    both neighbours take up what it gives or takes. Why the last two: a rod whose spheres are
+    all alike (the pin connector's) is cut into discs with no step at all, and its flange, as
+    narrow a shaft as it is wide a flange, exists only if the search makes it."""
     d = [list(s) for s in discs]
     k = int(np.argmax([s[2] for s in d]))
     x0, x1, r = d[k]
     grow = (x1 - x0) * (length - 1)
+    end = k in (0, len(d) - 1) and len(d) > 1
+    if offset and (end or len(d) == 1):
+        raise ValueError(f"offset {offset:g} moves a disc between two; valid: 0 for a template "
+                         "whose widest disc is at an end")
     if k == 0 and len(d) > 1:
         d[k][1] += grow
         d[k + 1][0] = d[k][1]
@@ -81,16 +109,18 @@ def head_variant(discs: Discs, length: float, radius: float) -> Discs:
         d[k][0] -= grow
         d[k - 1][1] = d[k][0]
     else:
-        d[k][0], d[k][1] = x0 - grow / 2, x1 + grow / 2
+        move = offset * (d[-1][1] - d[0][0])
+        d[k][0], d[k][1] = x0 - grow / 2 + move, x1 + grow / 2 + move
         if k > 0:
             d[k - 1][1] = d[k][0]
         if k + 1 < len(d):
             d[k + 1][0] = d[k][1]
-    d[k][2] = r * radius
+    for i, s in enumerate(d):
+        s[2] *= radius if i == k else shaft
     if any(b - a <= 2 * CONVEX_MIN_EXTENT for a, b, _ in d):
-        raise ValueError(f"head length x{length} leaves a disc shorter than "
-                         f"{2 * CONVEX_MIN_EXTENT} template units; valid: factors that keep "
-                         "every disc of the template")
+        raise ValueError(f"head length x{length:g}, offset {offset:g} leaves a disc shorter "
+                         f"than {2 * CONVEX_MIN_EXTENT} template units; valid: factors that "
+                         "keep every disc of the template")
     return [tuple(float(v) for v in s) for s in d]
 
 
@@ -132,19 +162,21 @@ def match_head(discs: Discs, user_x: np.ndarray, make: Callable[[Discs, Path], P
     done = {}  # a variant measured with the same piles and user frames is not measured again
     if log.is_file():
         for line in log.read_text().splitlines():
-            row = json.loads(line)
-            done[(row["length"], row["radius"], row["piles"], row["seed"], row["frames"])] = row
+            row = {"shaft": 1.0, "offset": 0.0, **json.loads(line)}
+            done[(*_variant(row), row["piles"], row["seed"], row["frames"])] = row
 
-    def measure(stage: str, grid: list[tuple[float, float]], count: int) -> list[dict]:
+    def measure(stage: str, grid: list[tuple[float, ...]], count: int) -> list[dict]:
         rows = []
-        for a, b in tqdm(grid, desc=f"piles ({stage})", unit="variant", disable=not progress):
-            key = (a, b, count, cfg.seed, len(user))
+        for v in tqdm(grid, desc=f"piles ({stage})", unit="variant", disable=not progress):
+            key = (*v, count, cfg.seed, len(user))
             if key not in done:
-                name = f"len{a:g}_rad{b:g}_piles{count}"
-                file = make(head_variant(discs, a, b), out / "variants" / f"{name}.pt")
+                a, b, c, o = v
+                name = (f"len{a:g}_rad{b:g}" + (f"_shaft{c:g}" if c != 1 else "")
+                        + (f"_off{o:g}" if o else "") + f"_piles{count}")
+                file = make(head_variant(discs, *v), out / "variants" / f"{name}.pt")
                 sim = piles(file, out / "piles" / name, count, cfg.seed)
-                row = {"stage": stage, "length": a, "radius": b, "piles": count,
-                       "seed": cfg.seed, "frames": len(user),
+                row = {"stage": stage, "length": a, "radius": b, "shaft": c, "offset": o,
+                       "piles": count, "seed": cfg.seed, "frames": len(user),
                        "distance": float(wasserstein_distance(heights(sim), ref)),
                        **(report(file) if report else {})}
                 with open(log, "a") as f:
@@ -153,27 +185,38 @@ def match_head(discs: Discs, user_x: np.ndarray, make: Callable[[Discs, Path], P
             rows.append({**done[key], "stage": stage})
         return rows
 
-    def valid(a: float, b: float) -> bool:
+    def valid(v: tuple[float, ...]) -> bool:
         try:
-            head_variant(discs, a, b)
-        except ValueError:  # a fine step below the coarse grid's shortest head
+            head_variant(discs, *v)
+        except ValueError:  # a head too short for its neighbours, or offset too far
             return False
         return True
 
-    coarse = measure("coarse", [(a, b) for a in cfg.lengths for b in cfg.radii], cfg.piles)
+    coarse = measure("coarse", [v for v in itertools.product(cfg.lengths, cfg.radii,
+                                                             cfg.shafts, cfg.offsets)
+                                if valid(v)], cfg.piles)
+    if not coarse:
+        raise ValueError("no variant of the grid keeps every disc of the template; valid: "
+                         "longer heads or smaller offsets")
     best = min(coarse, key=lambda r: r["distance"])
     fine = []
-    if cfg.fine_piles:
-        fine = measure("fine", [(a, b) for a in _fine(cfg.lengths, best["length"])
-                                for b in _fine(cfg.radii, best["radius"]) if valid(a, b)],
+    if cfg.fine_piles:  # length and radius about the best, at its shaft and offset
+        fine = measure("fine", [v for a in _fine(cfg.lengths, best["length"])
+                                for b in _fine(cfg.radii, best["radius"])
+                                if valid(v := (a, b, best["shaft"], best["offset"]))],
                        cfg.fine_piles)
         best = min(fine, key=lambda r: r["distance"])
     summary = {"config": config, "discs_before": start,
                "coarse": coarse, "fine": fine, "best": best,
-               "discs": [list(s) for s in head_variant(discs, best["length"], best["radius"])]}
+               "discs": [list(s) for s in head_variant(discs, *_variant(best))]}
     _plot(coarse, cfg, out / "match.png")
     write_json(out / "summary.json", summary)
     return summary
+
+
+def _variant(row: dict) -> tuple[float, float, float, float]:
+    """A measured variant's factors, as `head_variant` takes them."""
+    return row["length"], row["radius"], row["shaft"], row["offset"]
 
 
 def _plot(rows: list[dict], cfg: PileMatchConfig, path: Path) -> None:
@@ -181,7 +224,9 @@ def _plot(rows: list[dict], cfg: PileMatchConfig, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    grid = np.array([[next(r["distance"] for r in rows if r["length"] == a and r["radius"] == b)
+    # each cell the best of its shafts and offsets (NaN: no variant of the grid keeps its discs)
+    grid = np.array([[min((r["distance"] for r in rows if r["length"] == a
+                           and r["radius"] == b), default=np.nan)
                       for b in cfg.radii] for a in cfg.lengths])
     fig, ax = plt.subplots(figsize=(5, 4))
     im = ax.imshow(grid, cmap="viridis_r", origin="lower")
@@ -189,7 +234,8 @@ def _plot(rows: list[dict], cfg: PileMatchConfig, path: Path) -> None:
     ax.set_yticks(range(len(cfg.lengths)), [f"{v:g}" for v in cfg.lengths])
     ax.set_xlabel("head radius (x the discs')")
     ax.set_ylabel("head length (x the discs')")
-    ax.set_title("piles' heights vs the frames' (W1)")
+    ax.set_title("piles' heights vs the frames' (W1)"
+                 + (", best shaft and offset" if len(cfg.shafts) * len(cfg.offsets) > 1 else ""))
     fig.colorbar(im, ax=ax)
     fig.tight_layout()
     tmp = path.with_suffix(".tmp.png")

@@ -31,6 +31,14 @@ def test_the_head_variant_keeps_the_template_s_length_and_its_other_disc():
     np.testing.assert_allclose([m[:2] for m in middle], [(-1.0, -0.4), (-0.4, 0.4), (0.4, 1.0)])
     with pytest.raises(ValueError, match="shorter"):
         head_variant(discs, 0.001, 1.0)
+    # a flange made on a uniform rod: the shaft narrowed, the flange moved along the axis
+    flange = head_variant([(-1.0, -0.5, 0.2), (-0.5, 0.5, 0.21), (0.5, 1.0, 0.2)], 0.2, 1.0,
+                          0.5, 0.1)
+    np.testing.assert_allclose(flange, [(-1.0, 0.1, 0.1), (0.1, 0.3, 0.21), (0.3, 1.0, 0.1)])
+    with pytest.raises(ValueError, match="between two"):
+        head_variant(discs, 1.0, 1.0, 1.0, 0.1)  # the head is at an end
+    with pytest.raises(ValueError, match="shafts"):
+        PileMatchConfig(shafts=())
     with pytest.raises(ValueError, match="increasing"):
         PileMatchConfig(lengths=(1.0, 0.5))
 
@@ -66,6 +74,35 @@ def test_piles_choose_the_head_the_frames_were_made_of_and_a_search_resumes(tmp_
         search(ROD, replace(SHAPE, pieces=3), user, x, out, cfg, progress=False)
     with pytest.raises(ValueError, match="discs"):
         search(ROD, ShapeFitConfig(), user, x, tmp_path / "box", cfg)
+
+
+def test_a_uniform_rod_gets_the_flange_its_frames_were_made_of(tmp_path):
+    """The pin connector's rod is a capsule: three discs with no step. The search makes the
+    flange: the frames are piles of a narrow shaft with a short flange, and the variant with
+    that shaft and that flange's length is kept; a row of an older search (no shaft, no
+    offset) is reused as shaft x1, offset 0."""
+    pin = REPO / "models" / "pin_connector" / "model.pt"
+    shape = replace(SHAPE, pieces=3)
+    state = checkpoint.load(pin)
+    discs = rod_discs(checkpoint.build_models(state, pin)[1], 3, 8)
+    truth = disc_model(state, shape, head_variant(discs, 0.25, 1.0, 0.5), tmp_path / "t.pt", pin)
+    user = tmp_path / "user"
+    generate(DatasetSpec(SceneConfig(object=str(truth), instances=5),
+                         {"train": 60, "val": 0, "test": 0}, seed=5), user, progress=False)
+    x = load_sim_split(user, "train")["x"]
+    cfg = PileMatchConfig(lengths=(0.25, 1.0), radii=(1.0, 1.1), shafts=(0.5, 1.0), piles=24,
+                          fine_piles=0, seed=1)
+    out = tmp_path / "match"
+    out.mkdir()
+    old = {"stage": "coarse", "length": 1.0, "radius": 1.0, "piles": 24, "seed": 1,
+           "frames": len(x), "distance": 9.0}  # as an older search wrote it
+    (out / "variants.jsonl").write_text(json.dumps(old) + "\n")
+    s = search(pin, shape, user, x, out, cfg, progress=False)
+    assert len(s["coarse"]) == 8 and (s["best"]["length"], s["best"]["shaft"]) == (0.25, 0.5)
+    assert next(r for r in s["coarse"] if r["shaft"] == 1.0 and r["length"] == 1.0
+                and r["radius"] == 1.0)["distance"] == 9.0  # reused, not piled again
+    shaft, flange, other = s["discs"]
+    assert flange[2] > 2 * max(shaft[2], other[2])
 
 
 def test_a_recording_s_piles_are_seen_through_the_camera_its_frames_give(tmp_path):
