@@ -519,8 +519,8 @@ class ConvexGenerator(TemplateGenerator):
         `axis_height`; `segments`: K (x0, x1, r), in order along the axis (a stack of discs:
         a solid of revolution with flat steps, such as a head on a shaft or a flange). Each piece
         also reaches back to the previous piece's centre (`halfspaces`: one connected body),
-        unseen inside the previous piece where that one is the wider (`shapefit.rod_discs`
-        orders them so where it can)."""
+        unseen inside the previous piece where that one is the wider (`shapefit.piece_order`
+        orders them so where it can: a flange first)."""
         K, P = self.extent.shape
         if len(segments) != K:
             raise ValueError(f"{len(segments)} segments for a template of {K} pieces; valid: {K}")

@@ -33,6 +33,7 @@ every evaluation: for the record only, never fitted to.
 """
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import time
@@ -169,13 +170,36 @@ def rod_discs(G: SphereGenerator, pieces: int, walls: int, samples: int = 240
               polygon * math.sqrt(float(a[bounds[k]:bounds[k + 1]].mean())))
              for k in range(pieces)]
 
-    def grown(order):
-        """About what the order adds to the discs: each piece reaches back to the previous
-        one's centre (`ConvexGenerator.halfspaces`), so a wider piece after a narrower one
-        covers half of it (the widening times the previous disc's half-length)."""
-        return sum(max(0.0, b[2] - a[2]) * (a[1] - a[0]) / 2 for a, b in zip(order, order[1:]))
+    return discs[::-1] if spill(discs[::-1]) < spill(discs) else discs
 
-    return discs[::-1] if grown(discs[::-1]) < grown(discs) else discs
+
+def spill(discs) -> float:
+    """The volume (per pi) a stack of discs, built as pieces in this order, holds beyond the
+    discs themselves: each piece reaches back to the previous piece's centre
+    (`ConvexGenerator.halfspaces`: one connected body), at its own radius, so a wider piece
+    after a narrower one covers the narrower one's part up to that centre."""
+    reach = []
+    for i, (x0, x1, r) in enumerate(discs):
+        c = (discs[i - 1][0] + discs[i - 1][1]) / 2 if i else x0
+        reach.append((min(x0, c), max(x1, c), r))
+    edges = sorted({v for x0, x1, _ in reach for v in (x0, x1)})
+    total = 0.0
+    for a, b in zip(edges, edges[1:]):
+        m = (a + b) / 2
+        built = max((r for x0, x1, r in reach if x0 <= m <= x1), default=0.0)
+        meant = max((r for x0, x1, r in discs if x0 <= m <= x1), default=0.0)
+        total += (b - a) * max(0.0, built ** 2 - meant ** 2)
+    return total
+
+
+def piece_order(discs) -> list:
+    """`discs` (in any order) in the order of pieces that spills least (`spill`), the given
+    order where no other spills less. Why: three discs in a row, the middle one the widest (a
+    flange), spill whichever end comes first, as the flange reaches back into half a shaft;
+    the flange first, each shaft after it reaching back into a piece no narrower, spill none."""
+    discs = list(discs)
+    orders = itertools.permutations(discs)
+    return list(min(orders, key=spill))  # min keeps the first of equals: the given order
 
 
 def convex_from_rod(state: dict, cfg: ShapeFitConfig, source="checkpoint", x=None,
@@ -201,7 +225,7 @@ def convex_from_rod(state: dict, cfg: ShapeFitConfig, source="checkpoint", x=Non
     if cfg.start == "discs":  # about the pose's origin, as the rod's spheres are, lifted by
         # the floor contact instead of the rod's `lift`: so the rod's poses place them where
         # they placed it (the lift in the template's own frame would turn with each pose)
-        G.init_discs(discs or rod_discs(rod, cfg.pieces, cfg.walls), 0.0)
+        G.init_discs(piece_order(discs or rod_discs(rod, cfg.pieces, cfg.walls)), 0.0)
     else:
         G.init_box(rod_box(rod, x if cfg.thickness == "data" else None))
     # without the rod encoder's distillation record: the encoder's next fit (the loop's) is

@@ -93,6 +93,40 @@ def test_discs_follow_a_rods_step_and_make_one_body_of_those_sizes():
         rod_discs(rod, 200, 8)
 
 
+def test_a_flange_between_two_shafts_is_built_as_thin_as_its_disc():
+    """Three discs, the middle the widest (a pin's flange): built in the order along the axis,
+    the flange reaches back to the first shaft's centre at its own width (4 times as long as
+    its disc); `piece_order` builds it first, so each shaft reaches back into a piece no
+    narrower and the body is the discs themselves, still one piece."""
+    from inseggan_ros.model import CONVEX_MIN_EXTENT, ModelConfig
+    from inseggan_ros.shape import components, template_pieces
+    from inseggan_ros.shapefit import piece_order, spill
+
+    discs = [(-0.4, -0.05, 0.1), (-0.05, 0.05, 0.23), (0.05, 0.4, 0.1)]
+    order = piece_order(discs)
+    assert order[0] == discs[1] and sorted(order) == sorted(discs)
+    assert spill(order) == pytest.approx(0.0, abs=1e-12)
+    assert spill(discs) == pytest.approx(0.175 * (0.23 ** 2 - 0.1 ** 2))  # half a shaft
+    bolt = [(-0.4, -0.2, 0.2), (-0.2, 0.4, 0.1)]
+    assert piece_order(bolt) == bolt and piece_order(bolt[::-1]) == bolt  # the head first
+
+    def flange_span(segments):
+        G = ConvexGenerator(ModelConfig(renderer="convex", composite="zbuffer", pieces=3,
+                                        walls=8, floor_contact=True))
+        G.init_discs(segments, 0.0)
+        assert components(template_pieces(G)) == 1
+        x, real = (t.detach() for t in G.corners())
+        k = segments.index(discs[1])
+        xk = x[k][real[k]]
+        return float(xk[:, 0].min()), float(xk[:, 0].max())
+
+    lo, hi = flange_span(discs)
+    # back to the first shaft's centre (and the ball about it): 0.1 + 0.175 + the ball
+    assert (lo, hi) == (pytest.approx(-0.225 - CONVEX_MIN_EXTENT, abs=2e-3),
+                        pytest.approx(0.05, abs=1e-4))
+    assert flange_span(order) == (pytest.approx(-0.05, abs=1e-4), pytest.approx(0.05, abs=1e-4))
+
+
 def test_a_disc_start_renders_as_its_rod_did_for_the_rods_poses():
     """`shape-fit --start discs`: the convex template from the rod model's profile, about the
     rod's axis, so that the rod's encoder and pose decoder place it where they placed the rod:
