@@ -25,8 +25,9 @@ coarse best's shaft and offset.
     inseggan shape-fit --model models/bolt --data data/bolt --out runs/bolt_head \
         --start discs --pieces 2 --walls 8 --iterations 0 --match-piles
     inseggan shape-fit --model models/pin_connector --data data/pin_connector \
-        --out runs/pin_flange --start discs --pieces 3 --walls 8 --iterations 0 --match-piles \
-        --pile-lengths 0.15,0.25,0.4 --pile-shafts 0.5,0.65,0.8,1 --pile-offsets 0,0.15
+        --out runs/pin_flange2 --start discs --pieces 3 --walls 8 --iterations 0 --match-piles \
+        --pile-lengths 0.15,0.25,0.4 --pile-radii 0.9,1,1.1 --pile-shafts 0.5,0.65,0.8 \
+        --pile-offsets 0,0.15
 """
 from __future__ import annotations
 

@@ -284,15 +284,21 @@ def test_shipped_parameter_files_set_the_segmenter(profile):
 def test_quality_file_keeps_the_models_own_vote_and_a_training_checkpoint_runs_realtime(
         tmp_path):
     """quality.yaml leaves the vote's and the split's scales to the model: the pin connector
-    keeps its 160. A training checkpoint stores no settings: the node runs it with
-    realtime.yaml's, and the same file applies over those (the vote and the split stay on)."""
+    keeps its own (a vote at 160, not realtime.yaml's 50, and its split off). A training
+    checkpoint stores no settings: the node runs it with realtime.yaml's, and the same file
+    applies over those (the vote and the split stay on)."""
+    from inseggan_ros import checkpoint
     from inseggan_ros.settings import read_params_file
 
     quality = read_params_file(shipped_params_file("quality"))
     realtime = read_params_file(shipped_params_file("realtime"))
     bare = checkpoint_without_settings(tmp_path / "bare.pt")
     names = ("superpixel_scale", "split_scale", "refine_steps", "refine_hypotheses")
-    own = {**quality, "superpixel_scale": 160, "split_scale": 800}  # the pin connector's
+    stored = checkpoint.load(REPO / "models" / "pin_connector" / "model.pt")["inference"]
+    own = {**quality, "superpixel_scale": stored["superpixel_scale"],
+           "split_scale": stored["split_scale"]}  # the pin connector's
+    assert (own["superpixel_scale"], own["split_scale"]) != (realtime["superpixel_scale"],
+                                                               realtime["split_scale"])
     cases = [(("model_path:=pin_connector",), True, own),
              ((f"model_path:={bare}",), True, {**realtime, **quality}),
              ((f"model_path:={bare}",), False, realtime)]
