@@ -297,8 +297,8 @@ def test_quality_file_keeps_the_models_own_vote_and_a_training_checkpoint_runs_r
     stored = checkpoint.load(REPO / "models" / "pin_connector" / "model.pt")["inference"]
     own = {**quality, "superpixel_scale": stored["superpixel_scale"],
            "split_scale": stored["split_scale"]}  # the pin connector's
-    assert (own["superpixel_scale"], own["split_scale"]) != (realtime["superpixel_scale"],
-                                                               realtime["split_scale"])
+    scales = ("superpixel_scale", "split_scale")
+    assert [own[k] for k in scales] != [realtime[k] for k in scales]
     cases = [(("model_path:=pin_connector",), True, own),
              ((f"model_path:={bare}",), True, {**realtime, **quality}),
              ((f"model_path:={bare}",), False, realtime)]
