@@ -24,12 +24,18 @@ from .checkpoint import CheckpointError
 from .vote_scale import SCALES as VOTE_SCALES
 
 
-def _fractions(text: str) -> tuple[float, float, float]:
+def _floats(text: str) -> tuple[float, ...] | None:
+    """Comma-separated numbers, or None where one is not a number."""
     try:
-        parts = tuple(float(x) for x in text.split(","))
+        return tuple(float(x) for x in text.split(","))
     except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"{text!r} is not three numbers like 0.8,0.1,0.1") from None
+        return None
+
+
+def _fractions(text: str) -> tuple[float, float, float]:
+    parts = _floats(text)
+    if parts is None:
+        raise argparse.ArgumentTypeError(f"{text!r} is not three numbers like 0.8,0.1,0.1")
     if len(parts) != 3:
         raise argparse.ArgumentTypeError(f"{text!r}: need three fractions train,val,test")
     return parts
@@ -49,18 +55,14 @@ def _vote_scales(text: str) -> tuple[int, ...]:
 
 
 def _numbers(text: str) -> tuple[float, ...]:
-    try:
-        parts = tuple(float(x) for x in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not numbers like 0.4,0.7,1") from None
+    parts = _floats(text)
+    if parts is None:
+        raise argparse.ArgumentTypeError(f"{text!r} is not numbers like 0.4,0.7,1")
     return parts
 
 
 def _offset(text: str) -> tuple[float, float]:
-    try:
-        parts = tuple(float(x) for x in text.split(","))
-    except ValueError:
-        parts = ()
+    parts = _floats(text) or ()
     if len(parts) != 2:
         raise argparse.ArgumentTypeError(f"{text!r} is not two numbers like -0.15,0.08 "
                                          "(fractions of the image width,height)")

@@ -61,15 +61,12 @@ class PileMatchConfig:
     workers: int = 1  # simulation processes
 
     def __post_init__(self):
-        for name in ("lengths", "radii"):
+        # two lengths and radii at least: the fine grid steps between neighbours
+        for name, least in (("lengths", 2), ("radii", 2), ("shafts", 1)):
             v = getattr(self, name)
-            if len(v) < 2 or any(f <= 0 for f in v) or list(v) != sorted(set(v)):
-                raise ValueError(f"{name} {v!r} invalid; valid: two or more increasing factors "
-                                 "above 0")
-        if (not self.shafts or any(f <= 0 for f in self.shafts)
-                or list(self.shafts) != sorted(set(self.shafts))):
-            raise ValueError(f"shafts {self.shafts!r} invalid; valid: one or more increasing "
-                             "factors above 0")
+            if len(v) < least or any(f <= 0 for f in v) or list(v) != sorted(set(v)):
+                raise ValueError(f"{name} {v!r} invalid; valid: {('one', 'two')[least - 1]} or "
+                                 "more increasing factors above 0")
         if not self.offsets or list(self.offsets) != sorted(set(self.offsets)):
             raise ValueError(f"offsets {self.offsets!r} invalid; valid: one or more increasing "
                              "fractions of the template's length")
@@ -99,8 +96,7 @@ def head_variant(discs: Discs, length: float, radius: float, shaft: float = 1.0,
     k = int(np.argmax([s[2] for s in d]))
     x0, x1, r = d[k]
     grow = (x1 - x0) * (length - 1)
-    end = k in (0, len(d) - 1) and len(d) > 1
-    if offset and (end or len(d) == 1):
+    if offset and not 0 < k < len(d) - 1:
         raise ValueError(f"offset {offset:g} moves a disc between two; valid: 0 for a template "
                          "whose widest disc is at an end")
     if k == 0 and len(d) > 1:
