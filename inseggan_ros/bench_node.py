@@ -219,7 +219,9 @@ def main(argv=None) -> int:
           f"starting points ({cfg.refine_keep or 'all'} refined, {cfg.refine_swaps} swaps), "
           f"smoothing {cfg.smooth.iters} + "
           f"{cfg.smooth.full_res_active} at full resolution, encoder in "
-          f"{last.get('encoder_precision', cfg.encoder_precision)}, superpixel thread "
+          f"{last.get('encoder_precision', cfg.encoder_precision)}, centre votes "
+          f"{cfg.centre_votes} (net in {last.get('centre_precision', cfg.centre_precision)}), "
+          f"second thread "
           f"{args.superpixel_thread}"
           + (f" (params file {args.params_file})" if args.params_file else ""))
     print(f"  frames: sent {len(sent)}, answered {len(got)} "
@@ -234,7 +236,7 @@ def main(argv=None) -> int:
         print(f"  end to end (stamp -> labels received here): p50 {np.percentile(e2e, 50):.1f} ms,"
               f" p99 {np.percentile(e2e, 99):.1f} ms")
     print(f"  peak resident memory of the node: {peak_mb:.0f} MB   [target <= 1024]")
-    print(f"  in this process, same frames, one torch thread (superpixel thread "
+    print(f"  in this process, same frames, one torch thread (second thread "
           f"{args.superpixel_thread}): preprocessing + inference p50 "
           f"{np.percentile(ref['inference_ms'], 50):.1f} ms (p99 "
           f"{np.percentile(ref['inference_ms'], 99):.1f}); conversion p50 "

@@ -88,7 +88,7 @@ class CentreNet(nn.Module):
         c = self.e3(b)
         b = self.d2(torch.cat([_up2(c), b], 1))
         a = self.d1(torch.cat([_up2(b), a], 1))
-        return self.out(a)
+        return self.out(a.to(self.out.weight.dtype))  # a float32 last layer: `CastCentreNet`
 
 
 def _up2(x: torch.Tensor) -> torch.Tensor:

@@ -215,6 +215,7 @@ def _settings_fields(seg, inference, also: dict | None) -> dict:
         # what "auto" meant here: the model tests measure in it, whatever their CPU computes
         # natively
         "encoder_precision": seg.resolve_precision(inference.encoder_precision),
+        "centre_precision": seg.resolve_precision(inference.centre_precision),
         "also": {k: v.to_dict() for k, v in (also or {}).items()}}
 
 
@@ -325,6 +326,7 @@ def export_label_free(checkpoint_path, name: str, out_dir, calib: dict, held: di
         "tau": seg.tau, "refine_steps": inf.refine_steps, "hypotheses": inf.refine_hypotheses,
         "smooth_iters": inf.smooth.iters, "keep": inf.refine_keep, "inference": inf.to_dict(),
         "encoder_precision": seg.resolve_precision(inf.encoder_precision),
+        "centre_precision": seg.resolve_precision(inf.centre_precision),
         "precision": "float32",  # no labels to show that float16 weights change nothing
         "measures": measures, "labelled": labelled, "vote_scale": vote,
         "centre_votes": centres_record(state),
@@ -515,7 +517,8 @@ def _settings_text(d: dict) -> str:
                  else f", encoder in {cfg.encoder_precision}")
     head = ", labels from the label head" if cfg.label_head == "on" else ""
     if cfg.centre_votes == "on":
-        head = ", instances from the centre votes"
+        net = "" if cfg.centre_precision == "float32" else f" (net in {cfg.centre_precision})"
+        head = f", instances from the centre votes{net}"
     vote = (f", then voted within depth superpixels (scale {cfg.vote_scale})"
             if cfg.vote_scale else "")
     split = (f", missed parts split off along coarse depth segments (scale {cfg.split_scale})"

@@ -28,7 +28,7 @@ from .centres import centre_labels, match_to_renders, net_from_state
 from .label_head import head_labels, head_from_state
 from .metrics import mean_miou, miou_batch
 from .model import TemplateGenerator
-from .precision import CastEncoder, native_bfloat16
+from .precision import CastCentreNet, CastEncoder, native_bfloat16
 from .preprocess import (PreprocessConfig, extend_labels, fill_labels_nearest, labels_to_full,
                          prepare)
 from .refine import refine, refine_poses, start_poses
@@ -171,10 +171,10 @@ class Segmenter:
     `centre_net`: the model's centre votes (`centres.py`), used where the settings say
     `centre_votes: on`.
 
-    `superpixel_thread`: a frame's two graph segmentations (`superpixels.frame_segments`),
-    which depend on the input alone, are made in a second thread while the encoder and the
-    renders run in this one; the labels are the same, the frame's latency lower where a second
-    core is free (docs/benchmarks.md)."""
+    `superpixel_thread`: what depends on the input frame alone, the centre votes' net and the
+    frame's two graph segmentations (`superpixels.frame_segments`), is made in a second thread
+    while the encoder and the renders run in this one; the labels are the same, the frame's
+    latency lower where a second core is free (docs/benchmarks.md)."""
 
     def __init__(self, G, E, model_cfg, prep_cfg, tau: float, device: str = "cpu",
                  inference: InferenceConfig = InferenceConfig(), label_head=None,
@@ -188,6 +188,7 @@ class Segmenter:
         self.inference = inference
         self.stored_settings = True  # `inference` is what the model ships (see from_checkpoint)
         self._encoders = {}  # precision -> the encoder that computes in it
+        self._centre_nets = {}  # precision -> the centre-vote net that computes in it
         self.superpixel_thread = superpixel_thread
         self._pool = None  # made on first use
 
@@ -207,8 +208,10 @@ class Segmenter:
                              "(`inseggan centres` makes one); valid: off")
 
     def encoder_changed(self) -> None:
-        """Call after changing E's weights: its copies in other precisions are made anew."""
+        """Call after changing E's (or the centre net's) weights: their copies in other
+        precisions are made anew."""
         self._encoders.clear()
+        self._centre_nets.clear()
 
     def resolve_precision(self, precision: str) -> str:
         """`settings.PRECISIONS` -> what the encoder computes in: auto is bfloat16 where native."""
@@ -224,6 +227,27 @@ class Segmenter:
         if precision not in self._encoders:
             self._encoders[precision] = CastEncoder(self.E, getattr(torch, precision)).eval()
         return self._encoders[precision]
+
+    def centre_net_in(self, precision: str = "float32"):
+        """The centre-vote net in `precision` (`settings.PRECISIONS`; its last layer stays
+        float32, `precision.CastCentreNet`)."""
+        precision = self.resolve_precision(precision)
+        if precision == "float32" or self.centre_net is None:
+            return self.centre_net
+        if precision not in self._centre_nets:
+            self._centre_nets[precision] = CastCentreNet(self.centre_net,
+                                                         getattr(torch, precision)).eval()
+        return self._centre_nets[precision]
+
+    def centre_votes(self, x, fg, n: int, precision: str = "float32") -> torch.Tensor:
+        """(B, 1, 64, 64) inputs and (B, 64, 64) foreground -> the centre votes' labels
+        (B, 64, 64), before they are matched to the renders."""
+        if self.centre_net is None:
+            raise ValueError("centre_votes on: this model has no centre-vote network; "
+                             "valid: off")
+        x = torch.as_tensor(x, dtype=torch.float32, device=self.device)
+        fg = torch.as_tensor(fg, dtype=torch.bool, device=self.device)
+        return centre_labels(self.centre_net_in(precision), x, fg, n)
 
     @staticmethod
     def from_checkpoint(path, device: str = "auto", tau: float | None = None,
@@ -270,20 +294,23 @@ class Segmenter:
 
     @torch.no_grad()
     def segment_batch(self, x: np.ndarray | torch.Tensor, fg=None, tau: float | None = None,
-                      settings: InferenceConfig | None = None, segments=None) -> dict:
+                      settings: InferenceConfig | None = None, segments=None,
+                      centres=None) -> dict:
         """(B, 1, 64, 64) prepared inputs -> labels (B, 64, 64) uint8, renders, scores, recon.
         `tau` and `settings` override the model's. `segments`: each frame's
-        `superpixels.frame_segments` made beforehand (a list, or a Future of one)."""
+        `superpixels.frame_segments` made beforehand (a list, or a Future of one); `centres`:
+        the centre votes' labels made beforehand (`centre_votes`, or a Future of them)."""
         cfg = self.inference if settings is None else settings
         x = torch.as_tensor(x, dtype=torch.float32, device=self.device)
-        out = self.model_labels(x, fg, tau, cfg)
+        out = self.model_labels(x, fg, tau, cfg, centres)
         return self.vote_and_split(out, x, cfg, tau, segments)
 
     @torch.no_grad()
     def model_labels(self, x: np.ndarray | torch.Tensor, fg=None, tau: float | None = None,
-                     settings: InferenceConfig | None = None) -> dict:
+                     settings: InferenceConfig | None = None, centres=None) -> dict:
         """`segment_batch` up to the vote: the z-buffered (or label head's, or centre votes')
-        labels, smoothed, with the renders and the reconstruction."""
+        labels, smoothed, with the renders and the reconstruction. `centres`: as
+        `segment_batch`'s."""
         tau = self.tau if tau is None else float(tau)
         cfg = self.inference if settings is None else settings
         x = torch.as_tensor(x, dtype=torch.float32, device=self.device)
@@ -297,13 +324,12 @@ class Segmenter:
                 raise ValueError("label_head on: this model has no label head; valid: off")
             labels = head_labels(self.label_head, x, out["renders"], labels, fg_t)
         if cfg.centre_votes == "on":
-            if self.centre_net is None:
-                raise ValueError("centre_votes on: this model has no centre-vote network; "
-                                 "valid: off")
             n = out["renders"].shape[1]
-            # in float32 whatever the encoder's arithmetic: in bfloat16 the cone's validation
-            # mIoU fell by 0.014 (docs/experiments.md, 2026-11-28, night)
-            labels = match_to_renders(centre_labels(self.centre_net, x, fg_t, n), labels, n)
+            if isinstance(centres, Future):
+                centres = centres.result()
+            if centres is None:
+                centres = self.centre_votes(x, fg_t, n, cfg.centre_precision)
+            labels = match_to_renders(centres, labels, n)
         out["labels"] = smooth_labels(labels, x, out["renders"].shape[1], cfg.smooth)
         return out
 
@@ -341,14 +367,16 @@ class Segmenter:
             raise ValueError("max_height and size are fixed by the model: "
                              f"{self.prep_cfg.max_height} m, {self.prep_cfg.size} px")
         prep = prepare(depth_m, prep_cfg)
-        segments = None
+        x, fg = prep.x[None, None], prep.fg[None]
+        segments = centres = None
+        if self.superpixel_thread and cfg.centre_votes == "on":  # first: needed first
+            centres = self._in_second_thread(self.centre_votes, x, fg,
+                                             self.model_cfg.n_instances, cfg.centre_precision)
         if self.superpixel_thread and (cfg.vote_scale > 0 or cfg.split_scale > 0):
-            if self._pool is None:
-                self._pool = ThreadPoolExecutor(1, thread_name_prefix="superpixels")
-            segments = self._pool.submit(lambda: [frame_segments(
+            segments = self._in_second_thread(lambda: [frame_segments(
                 prep.x, prep.fg, (cfg.vote_scale, cfg.split_scale))])
-        out = self.segment_batch(prep.x[None, None], fg=prep.fg[None], tau=tau, settings=cfg,
-                                 segments=segments)
+        out = self.segment_batch(x, fg=fg, tau=tau, settings=cfg, segments=segments,
+                                 centres=centres)
         labels64 = out["labels"][0].cpu().numpy()
         labels = extend_labels(labels_to_full(labels64, prep), depth_m, prep, prep_cfg)
         labels = smooth_full(labels, depth_m, prep.floor_depth, prep_cfg.max_height,
@@ -359,6 +387,12 @@ class Segmenter:
             recon = self._heights_to_depth(recon64, prep, prep.shape)
         return Segmentation(labels, recon, out["scores"][0].cpu().numpy(), labels64, prep.x,
                             prep.roi, prep.floor_depth, out["renders"][0].cpu().numpy())
+
+    def _in_second_thread(self, fn, *args) -> Future:
+        """`fn(*args)` in the one second thread (`superpixel_thread`), in order of submission."""
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(1, thread_name_prefix="superpixels")
+        return self._pool.submit(fn, *args)
 
     def _heights_to_depth(self, recon64: np.ndarray, prep, shape) -> np.ndarray:
         """Model output in [-1, 1] (64 x 64) -> metric depth at the input resolution (ROI only)."""

@@ -106,6 +106,10 @@ class InferenceConfig:
         "centres and each pixel's offset to its part's centre, each instance given the id of "
         "the render it overlaps most; then smoothing and split, no superpixel vote; models "
         "without the network: off) or from the z-buffer (off)", choices=CENTRE_VOTES))
+    centre_precision: str = field(default="float32", metadata=_doc(
+        "the centre-vote network's arithmetic (its last layer always float32): float32, "
+        "bfloat16, or auto (bfloat16 where the CPU or GPU computes it natively, else float32); "
+        "a model stores the one its validation split chose", choices=PRECISIONS))
 
     def __post_init__(self):
         for name, ok, valid in (
@@ -118,7 +122,9 @@ class InferenceConfig:
                 ("encoder_precision", self.encoder_precision in PRECISIONS,
                  ", ".join(PRECISIONS)),
                 ("label_head", self.label_head in LABEL_HEAD, ", ".join(LABEL_HEAD)),
-                ("centre_votes", self.centre_votes in CENTRE_VOTES, ", ".join(CENTRE_VOTES))):
+                ("centre_votes", self.centre_votes in CENTRE_VOTES, ", ".join(CENTRE_VOTES)),
+                ("centre_precision", self.centre_precision in PRECISIONS,
+                 ", ".join(PRECISIONS))):
             if not ok:
                 raise ValueError(f"{name} {getattr(self, name)!r} invalid; valid: {valid}")
         if self.label_head == "on" and self.centre_votes == "on":

@@ -463,7 +463,10 @@ def test_inference_config_validates_and_reads_old_checkpoints():
     with pytest.raises(ValueError, match="encoder_precision 'half' invalid; valid: float32, "
                                          "bfloat16, auto"):
         InferenceConfig(encoder_precision="half")
-    assert old.encoder_precision == "float32"
+    with pytest.raises(ValueError, match="centre_precision 'half' invalid; valid: float32, "
+                                         "bfloat16, auto"):
+        InferenceConfig(centre_precision="half")
+    assert old.encoder_precision == old.centre_precision == "float32"
     fast = InferenceConfig(encoder_precision="auto")
     assert InferenceConfig.from_dict(fast.to_dict()) == fast
     with pytest.raises(ValueError, match="unknown inference settings"):
@@ -481,7 +484,7 @@ def test_settings_have_one_name_as_field_parameter_and_flag():
     assert names == ["refine_steps", "refine_hypotheses", "refine_keep", "refine_swaps",
                      "smooth_iters",
                      "smooth_full_res_iters", "encoder_precision", "superpixel_scale",
-                     "split_scale", "label_head", "centre_votes"]
+                     "split_scale", "label_head", "centre_votes", "centre_precision"]
     parser = argparse.ArgumentParser()
     settings.add_flags(parser, "(default: the model's)")
     args = parser.parse_args(["--refine-hypotheses", "8", "--smooth-full-res-iters", "0",
@@ -582,6 +585,35 @@ def test_a_bfloat16_encoder_gives_the_float32_labels():
     with torch.no_grad():
         codes, want = seg.encoder("bfloat16")(x), plain(x.to(torch.bfloat16)).float()
     torch.testing.assert_close(codes, want, rtol=0.02, atol=0.02 * float(want.abs().max()))
+
+
+def test_a_bfloat16_centre_net_gives_the_float32_labels():
+    """The shipped cylinder model's centre votes on bins it draws itself: the net in bfloat16
+    (native or not), its last layer in float32, labels as in float32 up to a few pixels; one
+    copy of its weights, and float32 the net itself."""
+    from inseggan_ros.precision import CastCentreNet
+    from inseggan_ros.segment import Segmenter
+
+    path = Path(__file__).resolve().parents[1] / "models" / "cylinder" / "model.pt"
+    seg = Segmenter.from_checkpoint(path, device="cpu")
+    torch.manual_seed(1)
+    with torch.no_grad():
+        x = seg.G.zbuffer(seg.G.render_instances(torch.randn(8, 5, seg.model_cfg.latent_dim)))
+    fg = x[:, 0] > -1 + 1e-4
+    a, b = (seg.centre_votes(x, fg, 5, p) for p in ("float32", "bfloat16"))
+    cfg = replace(seg.inference, centre_votes="on", encoder_precision="float32")
+    for precision, want in (("float32", a), ("bfloat16", b)):  # the setting picks the net
+        got = seg.model_labels(x, fg, settings=replace(cfg, centre_precision=precision))
+        assert torch.equal(got["labels"], seg.model_labels(
+            x, fg, settings=cfg, centres=want)["labels"])
+    assert (a != b).float().mean() < 0.01
+    assert (a[fg] > 0).all() and len(a.unique()) > 2, "the votes found instances"
+    net = seg.centre_net_in("bfloat16")
+    assert isinstance(net, CastCentreNet) and net is seg.centre_net_in("bfloat16")
+    assert net.net.e1[0][0].weight.dtype == torch.bfloat16
+    assert net.net.out.weight.dtype == torch.float32
+    assert seg.centre_net_in("float32") is seg.centre_net
+    assert seg.centre_net.out.weight.dtype == torch.float32, "the copy left the net as it was"
 
 
 def test_levenberg_marquardt_refinement_recovers_known_poses():

@@ -79,13 +79,16 @@ def test_card_matches_checkpoint(folder):
 
 
 def load_as_measured(folder: Path):
-    """The shipped model with its card's encoder precision (what `auto` resolved to where the
-    card was measured), so that a CPU without native bfloat16 measures the same arithmetic."""
+    """The shipped model with its card's encoder and centre-net precisions (what `auto`
+    resolved to where the card was measured), so that a CPU without native bfloat16 measures
+    the same arithmetic."""
     card = json.loads((folder / "card.json").read_text())
     seg = Segmenter.from_checkpoint(folder / "model.pt", device="cpu")
     seg.inference = replace(seg.inference,
                             encoder_precision=card.get("encoder_precision",
-                                                       seg.inference.encoder_precision))
+                                                       seg.inference.encoder_precision),
+                            centre_precision=card.get("centre_precision",
+                                                      seg.inference.centre_precision))
     return seg
 
 

@@ -239,6 +239,9 @@ def test_parameter_changes_are_validated_at_run_time():
         ("encoder_precision", "'bfloat16'", "ok"),
         ("encoder_precision", "'float16'",
          "rejected: encoder_precision 'float16' invalid; valid: float32, bfloat16, auto"),
+        ("centre_precision", "'auto'", "ok"),
+        ("centre_precision", "'half'",
+         "rejected: centre_precision 'half' invalid; valid: float32, bfloat16, auto"),
         # the shipped cylinder model labels with its centre votes; off, the z-buffer's labels
         ("centre_votes", "'off'", "ok"),
         # it has no label head

@@ -158,3 +158,21 @@ def test_the_superpixel_thread_gives_the_node_path_the_same_labels(cylinder_bag)
         np.testing.assert_array_equal(a.labels, b.labels)
         np.testing.assert_array_equal(a.scores, b.scores)
     assert threaded._pool is not None, "the thread made the segments"
+
+
+def test_the_second_thread_gives_centre_votes_the_same_labels(cylinder_bag):
+    """With centre votes on, the net runs in the second thread beside the encoder: the same
+    labels and scores as one thread, for the net in float32 and in bfloat16 (native or not)."""
+    seg, _ = cylinder_bag
+    frames = [f.metres() for f in bags.read_frames(BAGS / "cylinder_sim", limit=3)]
+    for precision in ("float32", "bfloat16"):
+        cfg = replace(seg.inference, centre_votes="on", split_scale=800,
+                      encoder_precision=precision)
+        one, two = (Segmenter(seg.G, seg.E, seg.model_cfg, seg.prep_cfg, seg.tau, inference=cfg,
+                              superpixel_thread=t, centre_net=seg.centre_net)
+                    for t in (False, True))
+        for f in frames:
+            a, b = one(f, reconstruction=False), two(f, reconstruction=False)
+            np.testing.assert_array_equal(a.labels, b.labels)
+            np.testing.assert_array_equal(a.scores, b.scores)
+        assert one._pool is None and two._pool is not None

@@ -258,9 +258,10 @@ class SegmenterNode(Node):
             "threads": (1, d("CPU threads for inference (1 leaves the other cores to DDS and "
                              "the rest of the robot)", read_only=True, int_range=(1, 256))),
             "superpixel_thread": (True, d(
-                "make a frame's depth superpixels (superpixel_scale, split_scale) in a second "
-                "thread while the encoder runs: the same labels, sooner where a second core is "
-                "free", read_only=True)),
+                "make what depends on the frame alone, the centre votes (centre_votes) and the "
+                "depth superpixels (superpixel_scale, split_scale), in a second thread while "
+                "the encoder runs: the same labels, sooner where a second core is free",
+                read_only=True)),
             "diagnostics_period": (1.0, d("seconds between /diagnostics messages", read_only=True,
                                           float_range=(0.05, 60.0))),
             "latency_window": (1000, d("frames over which /diagnostics reports latency "
@@ -481,6 +482,7 @@ class SegmenterNode(Node):
         values = {
             "model": str(self.model_path), "device": str(self.model.device),
             "encoder_precision": self.model.resolve_precision(self.p["encoder_precision"]),
+            "centre_precision": self.model.resolve_precision(self.p["centre_precision"]),
             "tau": f"{self.p['tau']:.3f}", "rate_hz": f"{rate:.2f}",
             "latency_p50_ms": pct(self.latency_ms, 50), "latency_p99_ms": pct(self.latency_ms, 99),
             "inference_p50_ms": pct(self.inference_ms, 50),
