@@ -369,13 +369,13 @@ def cmd_shape_fit(args) -> int:
                          frames=args.frames, eval_every=args.eval_every, seed=args.seed,
                          thickness=args.thickness, start=args.start)
     grid = {"lengths": args.pile_lengths, "radii": args.pile_radii, "shafts": args.pile_shafts,
-            "offsets": args.pile_offsets}
+            "offsets": args.pile_offsets, "stretches": args.pile_stretches}
     if args.match_piles and args.start != "discs":
         raise ValueError("--match-piles sizes the head of a disc template; valid: with "
                          "--start discs")
     if not args.match_piles and any(v is not None for v in grid.values()):
-        raise ValueError("--pile-lengths, --pile-radii, --pile-shafts and --pile-offsets are "
-                         "--match-piles' grid; valid: with --match-piles")
+        raise ValueError("--pile-lengths, --pile-radii, --pile-shafts, --pile-offsets and "
+                         "--pile-stretches are --match-piles' grid; valid: with --match-piles")
     file = _model_file(args.model)
     frames = _bag_or_data(args)
     report = None
@@ -402,6 +402,7 @@ def cmd_shape_fit(args) -> int:
               f"{best['length']:g}, radius x{best['radius']:g}"
               + (f", shaft x{best['shaft']:g}" if best.get("shaft", 1) != 1 else "")
               + (f", offset {best['offset']:g}" if best.get("offset") else "")
+              + (f", stretched x{best['stretch']:g}" if best.get("stretch", 1) != 1 else "")
               + f" (heights' W1 {best['distance']:.4f}"
               + (f"; IoU with the true part {best['iou']:.3f}" if "iou" in best else "")
               + f"); {args.out / 'match' / 'match.png'}")
@@ -1025,6 +1026,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--pile-offsets", type=_numbers,
                    help="--match-piles: the middle disc moved along the axis, fractions of the "
                         "template's length (0)")
+    p.add_argument("--pile-stretches", type=_numbers,
+                   help="--match-piles: the whole template's length factors, radii kept (1; a "
+                        "rod learned too short: e.g. 1,1.25,1.5)")
     p.add_argument("--workers", type=int, default=1,
                    help="simulation processes of --match-piles (1)")
     p.add_argument("--seed", type=int, default=0)

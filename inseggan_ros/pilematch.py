@@ -19,8 +19,10 @@ piles (the distances of the best few differ by little more than their sampling n
 A rod whose spheres are all alike has no step for the cut to find: a flange (the pin
 connector's) is then made, not resized. Three discs, the middle one the widest; the grid also
 scales the other discs' radius (`shafts`: the shaft as narrow as the flange is wide) and moves
-the middle disc along the axis (`offsets`). The fine grid is over length and radius at the
-coarse best's shaft and offset.
+the middle disc along the axis (`offsets`). A rod learned too short (a CPU's shape stage on a
+tilted camera's bolts: two thirds of the bolt's length) is stretched whole along its axis, its
+radii kept (`stretches`). The fine grid is over length and radius at the coarse best's shaft,
+offset and stretch.
 
     inseggan shape-fit --model models/bolt --data data/bolt --out runs/bolt_head \
         --start discs --pieces 2 --walls 8 --iterations 0 --match-piles
@@ -53,6 +55,7 @@ class PileMatchConfig:
     radii: tuple[float, ...] = (0.9, 1.0, 1.1, 1.2, 1.3)  # its radius, x the discs'
     shafts: tuple[float, ...] = (1.0,)  # the other discs' radius, x theirs (a flange's shaft)
     offsets: tuple[float, ...] = (0.0,)  # a disc between two: its middle moved, x the length
+    stretches: tuple[float, ...] = (1.0,)  # the whole template's length, x its own (radii kept)
     piles: int = 200  # simulated piles of each variant of the coarse grid
     fine_piles: int = 600  # of the fine grid: half the coarse steps about its best, 3 x 3
     # (0: no fine grid)
@@ -62,7 +65,7 @@ class PileMatchConfig:
 
     def __post_init__(self):
         # two lengths and radii at least: the fine grid steps between neighbours
-        for name, least in (("lengths", 2), ("radii", 2), ("shafts", 1)):
+        for name, least in (("lengths", 2), ("radii", 2), ("shafts", 1), ("stretches", 1)):
             v = getattr(self, name)
             if len(v) < least or any(f <= 0 for f in v) or list(v) != sorted(set(v)):
                 raise ValueError(f"{name} {v!r} invalid; valid: {('one', 'two')[least - 1]} or "
@@ -84,15 +87,18 @@ def heights(x: np.ndarray) -> np.ndarray:
 
 
 def head_variant(discs: Discs, length: float, radius: float, shaft: float = 1.0,
-                 offset: float = 0.0) -> Discs:
-    """`discs` with the widest one's length times `length` and radius times `radius`, every
-    other disc's radius times `shaft`, and, for a disc between two, its middle moved along the
-    axis by `offset` times the template's length. An end disc keeps its outer end, and its
+                 offset: float = 0.0, stretch: float = 1.0) -> Discs:
+    """`discs` stretched along the axis by `stretch` about the template's middle (every disc's
+    length and place, its radius kept), then with the widest one's length times `length` and
+    radius times `radius`, every other disc's radius times `shaft`, and, for a disc between
+    two, its middle moved along the axis by `offset` times the template's length. An end disc
+    keeps its outer end, and its
     neighbour takes up the difference; a disc between two keeps its middle (then moved) and
     both neighbours take up what it gives or takes. Why the last two: a rod whose spheres are
     all alike (the pin connector's) is cut into discs with no step at all, and its flange, as
     narrow a shaft as it is wide a flange, exists only if the search makes it."""
-    d = [list(s) for s in discs]
+    mid = (discs[0][0] + discs[-1][1]) / 2
+    d = [[mid + (a - mid) * stretch, mid + (b - mid) * stretch, r] for a, b, r in discs]
     k = int(np.argmax([s[2] for s in d]))
     x0, x1, r = d[k]
     grow = (x1 - x0) * (length - 1)
@@ -159,7 +165,7 @@ def match_head(discs: Discs, user_x: np.ndarray, make: Callable[[Discs, Path], P
     done = {}  # a variant measured with the same piles and user frames is not measured again
     if log.is_file():
         for line in log.read_text().splitlines():
-            row = {"shaft": 1.0, "offset": 0.0, **json.loads(line)}
+            row = {"shaft": 1.0, "offset": 0.0, "stretch": 1.0, **json.loads(line)}
             done[(*_variant(row), row["piles"], row["seed"], row["frames"])] = row
 
     def measure(stage: str, grid: list[tuple[float, ...]], count: int) -> list[dict]:
@@ -167,13 +173,14 @@ def match_head(discs: Discs, user_x: np.ndarray, make: Callable[[Discs, Path], P
         for v in tqdm(grid, desc=f"piles ({stage})", unit="variant", disable=not progress):
             key = (*v, count, cfg.seed, len(user))
             if key not in done:
-                a, b, c, o = v
+                a, b, c, o, e = v
                 name = (f"len{a:g}_rad{b:g}" + (f"_shaft{c:g}" if c != 1 else "")
-                        + (f"_off{o:g}" if o else "") + f"_piles{count}")
+                        + (f"_off{o:g}" if o else "") + (f"_str{e:g}" if e != 1 else "")
+                        + f"_piles{count}")
                 file = make(head_variant(discs, *v), out / "variants" / f"{name}.pt")
                 sim = piles(file, out / "piles" / name, count, cfg.seed)
                 row = {"stage": stage, "length": a, "radius": b, "shaft": c, "offset": o,
-                       "piles": count, "seed": cfg.seed, "frames": len(user),
+                       "stretch": e, "piles": count, "seed": cfg.seed, "frames": len(user),
                        "distance": float(wasserstein_distance(heights(sim), ref)),
                        **(report(file) if report else {})}
                 with open(log, "a") as f:
@@ -189,18 +196,17 @@ def match_head(discs: Discs, user_x: np.ndarray, make: Callable[[Discs, Path], P
             return False
         return True
 
-    coarse = measure("coarse", [v for v in itertools.product(cfg.lengths, cfg.radii,
-                                                             cfg.shafts, cfg.offsets)
-                                if valid(v)], cfg.piles)
+    coarse = measure("coarse", [v for v in itertools.product(
+        cfg.lengths, cfg.radii, cfg.shafts, cfg.offsets, cfg.stretches) if valid(v)], cfg.piles)
     if not coarse:
         raise ValueError("no variant of the grid keeps every disc of the template; valid: "
                          "longer heads or smaller offsets")
     best = min(coarse, key=lambda r: r["distance"])
     fine = []
-    if cfg.fine_piles:  # length and radius about the best, at its shaft and offset
+    if cfg.fine_piles:  # length and radius about the best, at its shaft, offset and stretch
         fine = measure("fine", [v for a in _fine(cfg.lengths, best["length"])
                                 for b in _fine(cfg.radii, best["radius"])
-                                if valid(v := (a, b, best["shaft"], best["offset"]))],
+                                if valid(v := (a, b, *_variant(best)[2:]))],
                        cfg.fine_piles)
         best = min(fine, key=lambda r: r["distance"])
     summary = {"config": config, "discs_before": start,
@@ -211,9 +217,9 @@ def match_head(discs: Discs, user_x: np.ndarray, make: Callable[[Discs, Path], P
     return summary
 
 
-def _variant(row: dict) -> tuple[float, float, float, float]:
+def _variant(row: dict) -> tuple[float, float, float, float, float]:
     """A measured variant's factors, as `head_variant` takes them."""
-    return row["length"], row["radius"], row["shaft"], row["offset"]
+    return row["length"], row["radius"], row["shaft"], row["offset"], row["stretch"]
 
 
 def _plot(rows: list[dict], cfg: PileMatchConfig, path: Path) -> None:
@@ -221,7 +227,8 @@ def _plot(rows: list[dict], cfg: PileMatchConfig, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    # each cell the best of its shafts and offsets (NaN: no variant of the grid keeps its discs)
+    # each cell the best of its shafts, offsets and stretches (NaN: no variant of the grid
+    # keeps its discs)
     grid = np.array([[min((r["distance"] for r in rows if r["length"] == a
                            and r["radius"] == b), default=np.nan)
                       for b in cfg.radii] for a in cfg.lengths])
@@ -232,7 +239,8 @@ def _plot(rows: list[dict], cfg: PileMatchConfig, path: Path) -> None:
     ax.set_xlabel("head radius (x the discs')")
     ax.set_ylabel("head length (x the discs')")
     ax.set_title("piles' heights vs the frames' (W1)"
-                 + (", best shaft and offset" if len(cfg.shafts) * len(cfg.offsets) > 1 else ""))
+                 + (", best of the other factors"
+                    if len(cfg.shafts) * len(cfg.offsets) * len(cfg.stretches) > 1 else ""))
     fig.colorbar(im, ax=ax)
     fig.tight_layout()
     tmp = path.with_suffix(".tmp.png")

@@ -37,8 +37,16 @@ def test_the_head_variant_keeps_the_template_s_length_and_its_other_disc():
     np.testing.assert_allclose(flange, [(-1.0, 0.1, 0.1), (0.1, 0.3, 0.21), (0.3, 1.0, 0.1)])
     with pytest.raises(ValueError, match="between two"):
         head_variant(discs, 1.0, 1.0, 1.0, 0.1)  # the head is at an end
+    # a rod learned too short, stretched whole about its middle: every disc's length and
+    # place, radii kept; then the head resized within the longer template
+    np.testing.assert_allclose(head_variant(discs, 1.0, 1.0, stretch=1.5),
+                               [(-1.5, -0.9, 0.3), (-0.9, 1.5, 0.12)])
+    np.testing.assert_allclose(head_variant(discs, 0.5, 1.0, stretch=2.0),
+                               [(-2.0, -1.6, 0.3), (-1.6, 2.0, 0.12)])
     with pytest.raises(ValueError, match="shafts"):
         PileMatchConfig(shafts=())
+    with pytest.raises(ValueError, match="stretches"):
+        PileMatchConfig(stretches=(0.0, 1.0))
     with pytest.raises(ValueError, match="increasing"):
         PileMatchConfig(lengths=(1.0, 0.5))
 
@@ -52,10 +60,12 @@ def test_piles_choose_the_head_the_frames_were_made_of_and_a_search_resumes(tmp_
     generate(DatasetSpec(SceneConfig(object=str(truth), instances=5),
                          {"train": 60, "val": 0, "test": 0}, seed=5), user, progress=False)
     x = load_sim_split(user, "train")["x"]
-    cfg = PileMatchConfig(lengths=(0.4, 1.0), radii=(1.0, 1.3), piles=32, fine_piles=0, seed=1)
+    cfg = PileMatchConfig(lengths=(0.4, 1.0), radii=(1.0, 1.3), stretches=(1.0, 1.5), piles=32,
+                          fine_piles=0, seed=1)
     out = tmp_path / "match"
     s = search(ROD, SHAPE, user, x, out, cfg, progress=False)
-    assert (s["best"]["length"], s["best"]["radius"]) == (0.4, 1.3), s["coarse"]
+    assert (s["best"]["length"], s["best"]["radius"], s["best"]["stretch"]) == (0.4, 1.3, 1.0), \
+        s["coarse"]
     (head, shaft), (head0, shaft0) = (sorted(d, key=lambda d: -d[2]) for d in
                                       (s["discs"], s["discs_before"]))
     assert head[2] == pytest.approx(1.3 * head0[2]) and shaft[2] == shaft0[2]
@@ -66,7 +76,8 @@ def test_piles_choose_the_head_the_frames_were_made_of_and_a_search_resumes(tmp_
     # about the coarse best, and its best is kept
     fine = search(ROD, SHAPE, user, x, out, replace(cfg, fine_piles=8), progress=False)
     rows = [json.loads(line) for line in (out / "variants.jsonl").read_text().splitlines()]
-    assert len(rows) == 4 + len(fine["fine"]) and fine["coarse"] == s["coarse"]
+    assert len(rows) == 8 + len(fine["fine"]) and fine["coarse"] == s["coarse"]
+    assert {r["stretch"] for r in fine["fine"]} == {1.0}
     assert {r["length"] for r in fine["fine"]} <= {0.1, 0.4, 0.7}
     assert {r["radius"] for r in fine["fine"]} == {1.15, 1.3, 1.45}
     assert fine["best"] == min(fine["fine"], key=lambda r: r["distance"])
