@@ -369,13 +369,15 @@ def cmd_shape_fit(args) -> int:
                          frames=args.frames, eval_every=args.eval_every, seed=args.seed,
                          thickness=args.thickness, start=args.start)
     grid = {"lengths": args.pile_lengths, "radii": args.pile_radii, "shafts": args.pile_shafts,
-            "offsets": args.pile_offsets, "stretches": args.pile_stretches}
+            "offsets": args.pile_offsets, "stretches": args.pile_stretches,
+            "fine_piles": args.fine_piles}
     if args.match_piles and args.start != "discs":
         raise ValueError("--match-piles sizes the head of a disc template; valid: with "
                          "--start discs")
     if not args.match_piles and any(v is not None for v in grid.values()):
-        raise ValueError("--pile-lengths, --pile-radii, --pile-shafts, --pile-offsets and "
-                         "--pile-stretches are --match-piles' grid; valid: with --match-piles")
+        raise ValueError("--pile-lengths, --pile-radii, --pile-shafts, --pile-offsets, "
+                         "--pile-stretches and --fine-piles are --match-piles' grid; valid: "
+                         "with --match-piles")
     file = _model_file(args.model)
     frames = _bag_or_data(args)
     report = None
@@ -1029,6 +1031,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--pile-stretches", type=_numbers,
                    help="--match-piles: the whole template's length factors, radii kept (1; a "
                         "rod learned too short: e.g. 1,1.25,1.5)")
+    p.add_argument("--fine-piles", type=int,
+                   help="--match-piles: piles of each variant of the fine grid about the coarse "
+                        "best (600; 0: no fine grid)")
     p.add_argument("--workers", type=int, default=1,
                    help="simulation processes of --match-piles (1)")
     p.add_argument("--seed", type=int, default=0)

@@ -156,6 +156,11 @@ def test_shape_fit_with_no_iterations_writes_the_discs_a_simulator_drops(tmp):
                 "--pieces", "2", "--walls", "8", "--iterations", "0", "--frames", "8", "--quiet",
                 check=True, timeout=300)
     assert "IoU with the true part" in p.stdout, p.stdout + p.stderr
+    for flag in ("--pile-stretches", "--fine-piles"):  # the search's grid, refused without it
+        bad = run_cli("shape-fit", "--model", MODEL, "--data", user, "--out", tmp / "bad",
+                      "--start", "discs", "--iterations", "0", flag, "1", "--quiet")
+        assert bad.returncode != 0 and "valid: with --match-piles" in bad.stderr, bad.stderr
+        assert not (tmp / "bad").exists()
     s = json.loads((out / "summary.json").read_text())
     assert s["iterations"] == 0 and s["model"] == str(out / "best.pt")
     assert s["best"]["iteration"] == 0 and s["best"]["recon_l1"] > 0
