@@ -532,12 +532,15 @@ def cmd_centres(args) -> int:
 
     if args.threads < 1:
         raise ValueError(f"--threads {args.threads} invalid; valid: >= 1")
+    if args.as_bag and args.self_labels:
+        raise ValueError("--as-bag cuts simulated piles as a recording's frames; --self-labels "
+                         "frames are cut as the model cuts them already; valid: one of them")
     torch.set_num_threads(args.threads)
     cfg = CentreConfig(width=args.width, iterations=args.iterations, batch=args.batch,
                        lr=args.lr, seed=args.seed, eval_every=min(500, args.iterations))
     summary = fit(resolve_model(str(args.model)), args.sim, args.out, cfg, frames=args.frames,
                   progress=not args.quiet, self_labels=args.self_labels,
-                  held_out=args.held_out, workers=args.threads,
+                  as_given=args.as_bag, held_out=args.held_out, workers=args.threads,
                   teacher_votes=args.teacher_centre_votes,
                   teacher_settings=args.teacher_settings)
     chosen = ("held-out self-labelled frames" if args.self_labels else "simulated scenes")
@@ -1181,6 +1184,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--held-out", type=int, default=200,
                    help="with --self-labels: the last training frames kept out to choose the "
                         "iteration by (200)")
+    p.add_argument("--as-bag", action="store_true",
+                   help="--sim's scenes cut as a recording's frames are (the bin and floor "
+                        "found in every frame, not the data set's known ones): for a model "
+                        "learned from a bag, taught on piles seen through its camera "
+                        "(`simulate --camera-from`), as the loop cuts them")
     p.add_argument("--teacher-centre-votes", action="store_true",
                    help="with --self-labels: the model labels with its own centre votes on "
                         "(the model as it ships; it must have them), not the z-buffer's "

@@ -166,6 +166,9 @@ def test_a_short_training_run_segments_held_out_piles_better_and_ships_in_the_mo
     p = run_cli("centres", "--model", "cylinder", "--sim", sim, "--out", out, "--iterations",
                 "150", "--batch", "4", "--width", "8", "--threads", "1", "--quiet")
     assert p.returncode != 0 and "made with other settings" in p.stderr, p.stderr
+    p = run_cli("centres", "--model", "cylinder", "--sim", sim, "--out", tmp / "bag_cut",
+                "--self-labels", "--as-bag", "--quiet")
+    assert p.returncode != 0 and "valid: one of them" in p.stderr, p.stderr
 
 
 def test_self_labels_teach_the_net_the_models_own_labels_of_the_users_frames(tmp):
