@@ -368,16 +368,10 @@ def cmd_shape_fit(args) -> int:
     cfg = ShapeFitConfig(pieces=args.pieces, walls=args.walls, iterations=args.iterations,
                          frames=args.frames, eval_every=args.eval_every, seed=args.seed,
                          thickness=args.thickness, start=args.start)
-    grid = {"lengths": args.pile_lengths, "radii": args.pile_radii, "shafts": args.pile_shafts,
-            "offsets": args.pile_offsets, "stretches": args.pile_stretches,
-            "fine_piles": args.fine_piles}
+    grid = _pile_grid(args)
     if args.match_piles and args.start != "discs":
         raise ValueError("--match-piles sizes the head of a disc template; valid: with "
                          "--start discs")
-    if not args.match_piles and any(v is not None for v in grid.values()):
-        raise ValueError("--pile-lengths, --pile-radii, --pile-shafts, --pile-offsets, "
-                         "--pile-stretches and --fine-piles are --match-piles' grid; valid: "
-                         "with --match-piles")
     file = _model_file(args.model)
     frames = _bag_or_data(args)
     report = None
@@ -396,8 +390,7 @@ def cmd_shape_fit(args) -> int:
         from .pilematch import PileMatchConfig, search
 
         m = search(file, cfg, frames, train_x, args.out / "match",
-                   PileMatchConfig(seed=args.seed, workers=args.workers,
-                                   **{k: v for k, v in grid.items() if v is not None}),
+                   PileMatchConfig(seed=args.seed, workers=args.workers, **grid),
                    progress=not args.quiet, report=report)
         discs, best = m["discs"], m["best"]
         print(f"head matched by {len(m['coarse']) + len(m['fine'])} variants' piles: length x"
@@ -422,6 +415,42 @@ def cmd_shape_fit(args) -> int:
                  f"{' x '.join(f'{v:.1f}' for v in last['true_dims_mm'])})")
     print(line + f"; model {s['model']}")
     return 0
+
+
+def _pile_grid_args(p) -> None:
+    """--match-piles' grid (`pilematch.PileMatchConfig`), as `shape-fit` and `loop` take it."""
+    p.add_argument("--pile-lengths", type=_numbers,
+                   help="--match-piles: the widest disc's length factors (0.4,0.55,0.7,0.85,1)")
+    p.add_argument("--pile-radii", type=_numbers,
+                   help="--match-piles: its radius factors (0.9,1,1.1,1.2,1.3)")
+    p.add_argument("--pile-shafts", type=_numbers,
+                   help="--match-piles: the other discs' radius factors (1; a flange made on a "
+                        "uniform rod: e.g. 0.5,0.65,0.8,1)")
+    p.add_argument("--pile-offsets", type=_numbers,
+                   help="--match-piles: the middle disc moved along the axis, fractions of the "
+                        "template's length (0)")
+    p.add_argument("--pile-stretches", type=_numbers,
+                   help="--match-piles: the whole template's length factors, radii kept (1; a "
+                        "rod learned too short: e.g. 1,1.25,1.5)")
+    p.add_argument("--coarse-piles", type=int,
+                   help="--match-piles: piles of each variant of the coarse grid (200)")
+    p.add_argument("--fine-piles", type=int,
+                   help="--match-piles: piles of each variant of the fine grid about the coarse "
+                        "best (600; 0: no fine grid)")
+
+
+def _pile_grid(args) -> dict:
+    """The grid flags given (`_pile_grid_args`) -> PileMatchConfig keywords; refused without
+    --match-piles."""
+    grid = {"lengths": args.pile_lengths, "radii": args.pile_radii, "shafts": args.pile_shafts,
+            "offsets": args.pile_offsets, "stretches": args.pile_stretches,
+            "piles": args.coarse_piles, "fine_piles": args.fine_piles}
+    grid = {k: v for k, v in grid.items() if v is not None}
+    if grid and not args.match_piles:
+        raise ValueError("--pile-lengths, --pile-radii, --pile-shafts, --pile-offsets, "
+                         "--pile-stretches, --coarse-piles and --fine-piles are --match-piles' "
+                         "grid; valid: with --match-piles")
+    return grid
 
 
 def _shape_report(model_file, data):
@@ -453,7 +482,18 @@ def cmd_loop(args) -> int:
                      self_frames=args.self_frames, self_iterations=args.self_iterations,
                      self_settings=args.self_settings, export_settings=args.export_settings,
                      size_by_thickness=args.size_by_thickness, size_rounds=args.size_rounds,
-                     size_keep_length=args.size_keep_length, vote_scales=args.vote_scales)
+                     size_keep_length=args.size_keep_length, vote_scales=args.vote_scales,
+                     match_pieces=args.match_pieces, match_walls=args.match_walls)
+    grid = _pile_grid(args)
+    if args.match_piles:
+        from dataclasses import replace
+
+        from .pilematch import PileMatchConfig
+
+        cfg = replace(cfg, match_piles=PileMatchConfig(seed=args.match_seed, **grid))
+    elif args.match_pieces != 2 or args.match_walls != 8 or args.match_seed != 0:
+        raise ValueError("--match-pieces, --match-walls and --match-seed shape --match-piles' "
+                         "discs; valid: with --match-piles")
     train_cfg = None
     if args.model is None:
         from .train import get_config
@@ -471,10 +511,16 @@ def cmd_loop(args) -> int:
                   train_cfg=train_cfg)
     enc = summary["encoder"]
     print(f"loop done in {(time.perf_counter() - t0) / 60:.1f} min ("
-          + _stage_minutes(summary["seconds"])
-          + f"); encoder validation mIoU on the simulated scenes {enc['val'][0]['miou']:.3f} -> "
-          f"{enc['best_score']:.3f}; model: {args.out}/model (tau {summary['tau']:.2f}), "
-          f"card {summary['card']}")
+          + _stage_minutes(summary["seconds"]) + "); "
+          + (f"encoder validation mIoU on the simulated scenes {enc['val'][0]['miou']:.3f} -> "
+             f"{enc['best_score']:.3f}" if enc else "no encoder stage (--iterations 0)")
+          + f"; model: {args.out}/model (tau {summary['tau']:.2f}), card {summary['card']}")
+    if "match" in summary:
+        best = summary["match"]["best"]
+        print(f"piles of a disc template matched by {summary['match']['variants']} variants: "
+              f"head length x{best['length']:g}, radius x{best['radius']:g}, shaft "
+              f"x{best['shaft']:g}, stretched x{best['stretch']:g} (heights' W1 "
+              f"{best['distance']:.4f}); {summary['match']['part']}")
     if "not_by_thickness" in summary["sizing"]:
         print(f"rod not resized to the frames' thickness: "
               f"{summary['sizing']['not_by_thickness']}")
@@ -1021,22 +1067,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --start discs: the widest disc's length and radius chosen by "
                         "simulating piles of variants in the user's bin and keeping the one "
                         "whose heights look most like the frames' (pilematch; OUT/match)")
-    p.add_argument("--pile-lengths", type=_numbers,
-                   help="--match-piles: the widest disc's length factors (0.4,0.55,0.7,0.85,1)")
-    p.add_argument("--pile-radii", type=_numbers,
-                   help="--match-piles: its radius factors (0.9,1,1.1,1.2,1.3)")
-    p.add_argument("--pile-shafts", type=_numbers,
-                   help="--match-piles: the other discs' radius factors (1; a flange made on a "
-                        "uniform rod: e.g. 0.5,0.65,0.8,1)")
-    p.add_argument("--pile-offsets", type=_numbers,
-                   help="--match-piles: the middle disc moved along the axis, fractions of the "
-                        "template's length (0)")
-    p.add_argument("--pile-stretches", type=_numbers,
-                   help="--match-piles: the whole template's length factors, radii kept (1; a "
-                        "rod learned too short: e.g. 1,1.25,1.5)")
-    p.add_argument("--fine-piles", type=int,
-                   help="--match-piles: piles of each variant of the fine grid about the coarse "
-                        "best (600; 0: no fine grid)")
+    _pile_grid_args(p)
     p.add_argument("--workers", type=int, default=1,
                    help="simulation processes of --match-piles (1)")
     p.add_argument("--seed", type=int, default=0)
@@ -1063,7 +1094,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, help="run directory (resumable)")
     p.add_argument("--scenes", type=int, default=3000, help="simulated training scenes (3000)")
     p.add_argument("--val-scenes", type=int, default=200)
-    p.add_argument("--iterations", type=int, default=3000, help="encoder iterations (3000)")
+    p.add_argument("--iterations", type=int, default=3000,
+                   help="encoder iterations (3000; 0: no encoder stage, the model's own "
+                        "encoder, with --centre-iterations or --head-iterations)")
     p.add_argument("--lr", type=float, default=3e-4, help="their learning rate (3e-4, cosine)")
     p.add_argument("--seed", type=int, default=11, help="of the simulated scenes (11)")
     p.add_argument("--workers", type=int, default=1,
@@ -1118,6 +1151,18 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default: " + ",".join(map(str, VOTE_SCALES)) + "; none: the export "
                         "settings' own scale; measured: docs/experiments.md, 2026-11-28, "
                         "evening)")
+    p.add_argument("--match-piles", action="store_true",
+                   help="with a rod: the piles are of a disc template cut from it, its widest "
+                        "disc sized (and the whole stretched) by how each variant's piles look "
+                        "against the user's frames (pilematch; OUT/match; no size stage then). "
+                        "Tilted bolts: docs/experiments.md, 2026-12-02")
+    _pile_grid_args(p)
+    p.add_argument("--match-pieces", type=int, default=2,
+                   help="--match-piles: the template's discs (2: a head on a shaft; 3: a flange)")
+    p.add_argument("--match-walls", type=int, default=8,
+                   help="--match-piles: side planes of each disc (8)")
+    p.add_argument("--match-seed", type=int, default=0,
+                   help="--match-piles: of the variants' piles (0)")
     p.add_argument("--name", default="model", help="the exported model's name")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_loop)

@@ -11,6 +11,8 @@ unlabelled frames), so one command goes from frames to a shipped model:
     inseggan loop --model runs/my_part/best.pt --data data/my_part --out runs/my_part_loop
     inseggan loop --data data/my_part --out runs/my_part_loop --train-minutes 40   # all of it
     inseggan loop --bag my_recording --instances 6 --out runs/my_part_loop --train-minutes 40
+    inseggan loop --bag my_bolts --instances 5 --out runs/my_bolts_loop --match-piles \
+        --iterations 0 --centre-iterations 3000 ...   # a head on a shaft: see stage 0c
 
 The user's frames are a simulated data set (`--data`: its meta.json names the camera, noise, bin
 and instance count) or a recording (`--bag`, `BagFrames`: the camera and bin are estimated from
@@ -30,10 +32,19 @@ resumes from its last checkpoint; the export writes its folder atomically):
      an elongated one): a rod resized to the thickness the user's frames show (`sizing`)
      -> out/size/model.pt; not run on a folder whose piles were made without it
      (`resume_plan`);
+  0c. match (only with `match_piles`, for a rod; then no size stage or rounds): the rod's
+     radius profile cut into flat-ended discs (`shapefit.rod_discs`), its widest disc (a
+     head, a flange) resized, and the whole stretched, over a grid, each variant piled in the
+     user's bin and the one whose heights look most like the user's frames kept
+     (`pilematch.search`; resumes variant by variant) -> out/match/best.pt. The piles are of
+     that part; the model stays the rod, whose encoder and what follows learn from them (a
+     CPU's rod of tilted bolts is two thirds of the bolt's length: docs/experiments.md,
+     2026-12-02);
   1. simulate: `--scenes` labelled scenes of the learned part, with the camera, noise, bin and
      number of instances of the user's data set (its meta.json) or bag;
-  2. encoder: the model's encoder fitted to them (`distill.DistillConfig` with the label losses),
-     with `--user-weight`, while also reconstructing the user's own unlabelled training frames;
+  2. encoder (not with `iterations` 0: the model's own encoder): the model's encoder fitted to
+     them (`distill.DistillConfig` with the label losses), with `--user-weight`, while also
+     reconstructing the user's own unlabelled training frames;
   2b. size rounds (`size_rounds`; by default AUTO_SIZE_ROUNDS for a rod the loop learned
      itself, none for a given model): the rod's scale chosen by how well it explains
      the user's frames (`sizing.choose_scale`; out/size_round<k>/scale.json); where it is not
@@ -71,6 +82,7 @@ from .evaluate import write_json
 from .vote_scale import SCALES as VOTE_SCALES
 
 if TYPE_CHECKING:
+    from .pilematch import PileMatchConfig
     from .preprocess import PreprocessConfig
     from .sim.scene import SceneConfig
 
@@ -84,7 +96,8 @@ AUTO_SIZE_ROUNDS = 2
 class LoopConfig:
     scenes: int = 3000  # labelled scenes of the learned part to train the encoder on
     val_scenes: int = 200  # and to choose its best checkpoint with
-    iterations: int = 3000  # encoder iterations
+    iterations: int = 3000  # encoder iterations (0: no encoder stage, the model's own encoder;
+    # then the piles teach what follows: centre votes or a label head)
     lr: float = 3e-4  # their learning rate (cosine schedule down to 0)
     label_weight: float = 1.0
     ownership_weight: float = 0.2
@@ -121,13 +134,17 @@ class LoopConfig:
     vote_scales: tuple[int, ...] = VOTE_SCALES  # at export, the superpixel vote's scale
     # chosen among these on the last simulated piles' validation split (`vote_scale.choose`;
     # () = the export settings' own scale)
+    match_piles: PileMatchConfig | None = None  # stage 0c's grid (None: no such stage): the
+    # piles are of a disc template cut from the rod, its head sized by how its piles look
+    # (`pilematch`; its `workers` are the loop's)
+    match_pieces: int = 2  # the discs of that template (2: a head on a shaft; 3: a flange)
+    match_walls: int = 8  # the side planes of each disc
 
     def __post_init__(self):
         if self.self_frames < 0:
             raise ValueError(f"self_frames {self.self_frames!r} invalid; valid: >= 0 (0 = no "
                              "self-fitting stage)")
-        for key in ("scenes", "val_scenes", "iterations", "workers", "user_frames",
-                    "self_iterations"):
+        for key in ("scenes", "val_scenes", "workers", "user_frames", "self_iterations"):
             if getattr(self, key) < 1:
                 raise ValueError(f"{key} {getattr(self, key)!r} invalid; valid: >= 1")
         if self.size_by_thickness not in ("auto", "on", "off"):
@@ -156,6 +173,16 @@ class LoopConfig:
         if self.centre_iterations and self.head_iterations:
             raise ValueError("head_iterations and centre_iterations both set: the labels come "
                              "from one of them; valid: at most one above 0")
+        taught = self.centre_iterations or self.head_iterations
+        if self.iterations < 0 or (self.iterations == 0 and not taught):
+            raise ValueError(f"iterations {self.iterations!r} invalid; valid: >= 1, or 0 (no "
+                             "encoder stage) with centre_iterations or head_iterations, which "
+                             "then learn from the piles")
+        if self.match_piles is not None:
+            from .shapefit import ShapeFitConfig
+
+            ShapeFitConfig(pieces=self.match_pieces, walls=self.match_walls, iterations=0,
+                           start="discs")  # raises with what is wrong
         if not 0 < self.lr < 1:
             raise ValueError(f"lr {self.lr!r} invalid; valid: in (0, 1)")
         if not self.user_weight >= 0:
@@ -427,21 +454,24 @@ def run_self_fit(model, data, out, cfg: LoopConfig, progress: bool = True) -> di
 
 def _simulate_and_fit(file: Path, data, meta: dict | None, view: dict, sim: Path,
                       encoder: Path, cfg: LoopConfig, seconds: dict, tag: str,
-                      progress: bool) -> Path:
-    """Stages 1 and 2 for the template of `file`: `cfg.scenes` labelled piles of it into `sim`,
-    then its encoder fitted to them into `encoder` -> encoder/best.pt. Each is skipped when
-    its result is complete (`meta` None: the user's frames are a bag, `data`)."""
+                      progress: bool, part: Path | None = None) -> Path:
+    """Stages 1 and 2 for the template of `file`: `cfg.scenes` labelled piles of it (or of the
+    model `part`, stage 0c's) into `sim`, then its encoder fitted to them into `encoder` ->
+    encoder/best.pt (`file` itself with `cfg.iterations` 0). Each is skipped when its result
+    is complete (`meta` None: the user's frames are a bag, `data`)."""
     from . import data as data_mod
     from .distill import DistillConfig, distill
     from .sim.dataset import DatasetSpec, generate
 
     t0 = time.monotonic()
     if not (sim / "meta.json").is_file():
-        spec = DatasetSpec(pile_scene(data, meta, file),
+        spec = DatasetSpec(pile_scene(data, meta, part or file),
                            {"train": cfg.scenes, "val": cfg.val_scenes, "test": 0},
                            seed=cfg.seed)
         generate(spec, sim, workers=cfg.workers, progress=progress)
     seconds["simulate" + tag] = round(time.monotonic() - t0, 1)
+    if not cfg.iterations:
+        return file
 
     t0 = time.monotonic()
     if not (encoder / "summary.json").is_file():
@@ -504,6 +534,16 @@ def size_plan(cfg: LoopConfig, learns: bool, renderer: str) -> tuple[str, int]:
     that is not a rod, or for `size_keep_length` where the thickness rule is off, raises,
     before any stage spends its time."""
     rod = renderer == "spheres"
+    if cfg.match_piles is not None:
+        if not rod:
+            raise ValueError(f"--match-piles cuts a rod of spheres into discs; the model's "
+                             f"template is {renderer!r} (valid: a rod model, or without "
+                             "--match-piles)")
+        if cfg.size_by_thickness == "on" or cfg.size_rounds or cfg.size_keep_length:
+            raise ValueError("--match-piles sizes the part itself (its head, its length); "
+                             "valid: without --size-by-thickness on, --size-keep-length and "
+                             "--size-rounds")
+        return "off", 0
     if not rod and (cfg.size_by_thickness == "on" or cfg.size_rounds):
         raise ValueError(f"--size-by-thickness / --size-rounds size a rod of spheres; the "
                          f"model's template is {renderer!r} (valid: renderer 'spheres', or "
@@ -594,6 +634,37 @@ def size_stage(file: Path, data, out: Path, cfg: LoopConfig, only_elongated: boo
     return out / "model.pt"
 
 
+def match_stage(file: Path, data, out: Path, cfg: LoopConfig, progress: bool = True) -> Path:
+    """Stage 0c: the part the piles are made of, a disc template cut from the rod of `file`
+    (`cfg.match_pieces` discs of `cfg.match_walls` sides), its widest disc sized and the whole
+    stretched over `cfg.match_piles`' grid by how the piles of each variant look against the
+    user's training frames (`pilematch.search`, into out/search; no label read), then written
+    as `shape-fit --start discs --iterations 0 --match-piles` writes it (`shapefit.fit_shape`,
+    its reconstruction of held-out frames measured, not fitted) -> out/best.pt. A killed
+    search resumes from the variants it measured; each step is skipped when done."""
+    from dataclasses import replace
+
+    from . import checkpoint
+    from .pilematch import search
+    from .preprocess import PreprocessConfig
+    from .shapefit import ShapeFitConfig, fit_shape, hold_out
+
+    if (out / "summary.json").is_file() and (out / "best.pt").is_file():
+        return out / "best.pt"
+    shape_cfg = ShapeFitConfig(pieces=cfg.match_pieces, walls=cfg.match_walls, iterations=0,
+                               start="discs")
+    prep = PreprocessConfig.from_dict(checkpoint.load(file)["preprocess_config"])
+    if isinstance(data, BagFrames):  # the frames `shape-fit --bag` fits and validates on
+        x, val = hold_out(data.frames(prep)[0]["x"], shape_cfg)
+    else:
+        x = _user_frames(data, prep, "train", shape_cfg.frames, progress)["x"]
+        val = _user_frames(data, prep, "val", shape_cfg.val_frames)["x"]
+    m = search(file, shape_cfg, data, x, out / "search",
+               replace(cfg.match_piles, workers=cfg.workers), progress)
+    return Path(fit_shape(file, x, out, shape_cfg, val_x=val, progress=progress,
+                          discs=m["discs"])["model"])
+
+
 def scale_check(file: Path, data, out: Path, cfg: LoopConfig) -> dict:
     """Stage 2b: the scale of the rod of `file`, at the settings it will ship with, that
     explains the user's frames best (`sizing.choose_scale`: tau calibrated on some of them,
@@ -655,7 +726,8 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
     thickness = resume_plan(thickness, out)  # raises, or
     out.mkdir(parents=True, exist_ok=True)  # drops the default stage for an unsized folder
     seconds: dict[str, float] = {}
-    stages = tqdm(total=(3 if model is not None else 4) + bool(cfg.head_iterations)
+    stages = tqdm(total=(2 if model is not None else 3) + bool(cfg.iterations)
+                  + bool(cfg.head_iterations) + (cfg.match_piles is not None)
                   + bool(cfg.self_frames) + bool(cfg.centre_iterations)
                   + (thickness != "off") + size_rounds,
                   desc="loop", unit="stage", disable=not progress,
@@ -675,10 +747,16 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
         file = size_stage(file, data, out / "size", cfg, thickness == "if_elongated")
         seconds["size"] = round(time.monotonic() - t0, 1)
         stages.update(1)
+    part = None  # the piles' part: the model's template, or stage 0c's discs
+    if cfg.match_piles is not None:
+        t0 = time.monotonic()
+        part = match_stage(file, data, out / "match", cfg, progress)
+        seconds["match"] = round(time.monotonic() - t0, 1)
+        stages.update(1)
     sim, encoder = out / "sim", out / "encoder"
     finished = _simulate_and_fit(file, data, meta, view, sim, encoder, cfg, seconds, "",
-                                 progress)
-    stages.update(2)
+                                 progress, part)
+    stages.update(1 + bool(cfg.iterations))
     rounds = []
     for k in range(1, size_rounds + 1):
         t0 = time.monotonic()
@@ -688,11 +766,11 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
         stages.update(1)
         if chosen["scale"] == 1.0:
             break
-        stages.total += 2
+        stages.total += 1 + bool(cfg.iterations)
         sim, encoder = out / f"size_round{k}" / "sim", out / f"size_round{k}" / "encoder"
         finished = _simulate_and_fit(Path(chosen["start"]), data, meta, view, sim, encoder,
                                      cfg, seconds, str(k), progress)
-        stages.update(2)
+        stages.update(1 + bool(cfg.iterations))
 
     if cfg.head_iterations:
         t0 = time.monotonic()
@@ -724,7 +802,8 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
 
     summary = {"model": str(model), "data": str(data) if bag is None else bag.describe(),
                "config": asdict(cfg),
-               "seconds": seconds, "encoder": json.loads((encoder / "summary.json").read_text()),
+               "seconds": seconds, "encoder": (json.loads((encoder / "summary.json").read_text())
+                                               if cfg.iterations else None),
                "card": str(out / "model" / "card.json"), "tau": card.get("tau"),
                "vote_scale": card.get("vote_scale")}
     summary["sizing"] = {"by_thickness": thickness, "rounds": size_rounds}
@@ -735,5 +814,9 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
         summary["size"] = json.loads((out / "size" / "size.json").read_text())
     if size_rounds:
         summary["size_rounds"] = rounds
+    if part is not None:
+        match = json.loads((out / "match" / "search" / "summary.json").read_text())
+        summary["match"] = {"part": str(part), "best": match["best"], "discs": match["discs"],
+                            "variants": len(match["coarse"]) + len(match["fine"])}
     write_json(out / "summary.json", summary)
     return summary

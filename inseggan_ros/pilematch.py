@@ -92,11 +92,11 @@ def head_variant(discs: Discs, length: float, radius: float, shaft: float = 1.0,
     length and place, its radius kept), then with the widest one's length times `length` and
     radius times `radius`, every other disc's radius times `shaft`, and, for a disc between
     two, its middle moved along the axis by `offset` times the template's length. An end disc
-    keeps its outer end, and its
-    neighbour takes up the difference; a disc between two keeps its middle (then moved) and
-    both neighbours take up what it gives or takes. Why the last two: a rod whose spheres are
-    all alike (the pin connector's) is cut into discs with no step at all, and its flange, as
-    narrow a shaft as it is wide a flange, exists only if the search makes it."""
+    keeps its outer end, and its neighbour takes up the difference; a disc between two keeps
+    its middle (then moved) and both neighbours take up what it gives or takes. Why the last
+    two: a rod whose spheres are all alike (the pin connector's) is cut into discs with no
+    step at all, and its flange, as narrow a shaft as it is wide a flange, exists only if the
+    search makes it."""
     mid = (discs[0][0] + discs[-1][1]) / 2
     d = [[mid + (a - mid) * stretch, mid + (b - mid) * stretch, r] for a, b, r in discs]
     k = int(np.argmax([s[2] for s in d]))

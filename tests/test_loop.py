@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import run_cli
+from conftest import REPO, run_cli
 
 from inseggan_ros import checkpoint, losses
 from inseggan_ros.data import load_bag, load_sim_split
@@ -230,3 +230,59 @@ def test_one_command_from_a_bag_learns_the_shape_then_ships_a_model(tmp):
     p = run_cli("loop", "--bag", bag, "--out", tmp / "o")
     assert p.returncode == 2 and "--bag needs --instances" in p.stderr, p.stderr
     assert not (tmp / "o").exists()
+
+
+def test_the_loop_piles_a_disc_template_matched_to_the_frames_and_keeps_the_rod(tmp):
+    """`loop --match-piles` (stage `match`, the tilted bolts' recipe in one command): the rod
+    is cut into discs whose head is sized by how their piles look against the recording's
+    frames (`pilematch`, tests/test_pilematch.py), the piles are of that part, and with
+    `--iterations 0` the rod model keeps its own encoder while its centre votes learn from the
+    piles; the model shipped is the rod with the votes. Started again, nothing is redone."""
+    rod = REPO / "models" / "bolt" / "model.pt"  # a rod of spheres with a rounded head
+    out = tmp / "loop"
+    args = ["loop", "--model", rod, "--bag", REPO / "bags" / "bolt_sim", "--instances", "5",
+            "--out", out, "--match-piles", "--pile-lengths", "0.5,1", "--pile-radii", "1,1.2",
+            "--coarse-piles", "3", "--fine-piles", "0", "--scenes", "12", "--val-scenes", "4",
+            "--iterations", "0", "--centre-iterations", "8", "--workers", "2", "--quiet"]
+    p = run_cli(*args, check=True, timeout=900)
+    assert "no encoder stage" in p.stdout and "matched by 4 variants" in p.stdout, p.stdout
+    summary = json.loads((out / "summary.json").read_text())
+    assert list(summary["seconds"]) == ["match", "simulate", "centres", "export"]
+    assert summary["encoder"] is None and summary["sizing"] == {"by_thickness": "off",
+                                                                "rounds": 0}
+    match = json.loads((out / "match" / "search" / "summary.json").read_text())
+    assert summary["match"]["best"] == match["best"] and len(match["coarse"]) == 4
+    assert match["config"]["piles"] == 3 and match["config"]["workers"] == 2
+    part = out / "match" / "best.pt"
+    meta = json.loads((out / "sim" / "meta.json").read_text())
+    assert meta["scene"]["object"] == str(part)  # the piles are of the matched discs
+    discs = checkpoint.load(part)["model_config"]
+    assert discs["renderer"] == "convex" and discs["pieces"] == 2
+    # the model shipped is the rod, its generator and encoder untouched, with the piles' votes
+    shipped, given = checkpoint.load(out / "model" / "model.pt"), checkpoint.load(rod)
+    assert shipped["model_config"]["renderer"] == "spheres"
+    for part_of in ("generator", "encoder"):
+        assert all(torch.equal(v, shipped[part_of][k]) for k, v in given[part_of].items())
+    net = shipped["centre_net"]  # the loop's own, taught on the matched part's piles
+    assert shipped["inference"]["centre_votes"] == "on" and net["sim"] == str(out / "sim")
+    assert net["width"] == 16 and "widest sized by simulated piles" in net["piles_part"]
+    assert json.loads((out / "model" / "card.json").read_text())["source"]["kind"] == "bag"
+    kept = (part, out / "match" / "search" / "variants.jsonl", out / "sim" / "meta.json",
+            out / "centres" / "model.pt")
+    stamps = {f: f.stat().st_mtime_ns for f in kept}
+    run_cli(*args, check=True, timeout=600)
+    assert {f: f.stat().st_mtime_ns for f in stamps} == stamps
+    # refused before any stage: sizing a matched part, a part that is not a rod, the grid or
+    # the discs' shape without --match-piles, no encoder stage with nothing after it
+    base = ["loop", "--bag", REPO / "bags" / "bolt_sim", "--instances", "5", "--quiet"]
+    for extra, said in (
+            (["--model", rod, "--match-piles", "--size-rounds", "1"], "sizes the part itself"),
+            (["--model", REPO / "models" / "wooden_block", "--match-piles"],
+             "cuts a rod of spheres"),
+            (["--model", rod, "--pile-lengths", "0.5,1"], "valid: with --match-piles"),
+            (["--model", rod, "--match-pieces", "3"], "valid: with --match-piles"),
+            (["--model", rod, "--iterations", "0"], "no encoder stage) with centre_iterations"),
+            (["--model", rod, "--match-piles", "--match-walls", "6"], "walls 6 invalid")):
+        bad = run_cli(*base, *extra, "--out", tmp / "bad")
+        assert bad.returncode == 2 and said in bad.stderr, (extra, bad.stderr)
+        assert not (tmp / "bad").exists()
