@@ -187,8 +187,7 @@ class Segmenter:
         self.model_cfg, self.prep_cfg, self.tau, self.device = model_cfg, prep_cfg, tau, device
         self.inference = inference
         self.stored_settings = True  # `inference` is what the model ships (see from_checkpoint)
-        self._encoders = {}  # precision -> the encoder that computes in it
-        self._centre_nets = {}  # precision -> the centre-vote net that computes in it
+        self._cast = {}  # (net's name, precision) -> its copy that computes in it
         self.superpixel_thread = superpixel_thread
         self._pool = None  # made on first use
 
@@ -210,8 +209,7 @@ class Segmenter:
     def encoder_changed(self) -> None:
         """Call after changing E's (or the centre net's) weights: their copies in other
         precisions are made anew."""
-        self._encoders.clear()
-        self._centre_nets.clear()
+        self._cast.clear()
 
     def resolve_precision(self, precision: str) -> str:
         """`settings.PRECISIONS` -> what the encoder computes in: auto is bfloat16 where native."""
@@ -219,25 +217,24 @@ class Segmenter:
             return "bfloat16" if native_bfloat16(self.device) else "float32"
         return precision
 
+    def _in_precision(self, name: str, cast, precision: str):
+        """The net `self.<name>` in `precision` (`settings.PRECISIONS`): itself in float32 (or
+        None), else `cast(net, dtype)`, made once per precision."""
+        net, precision = getattr(self, name), self.resolve_precision(precision)
+        if precision == "float32" or net is None:
+            return net
+        if (name, precision) not in self._cast:
+            self._cast[name, precision] = cast(net, getattr(torch, precision)).eval()
+        return self._cast[name, precision]
+
     def encoder(self, precision: str = "float32"):
         """The encoder in `precision` (`settings.PRECISIONS`)."""
-        precision = self.resolve_precision(precision)
-        if precision == "float32":
-            return self.E
-        if precision not in self._encoders:
-            self._encoders[precision] = CastEncoder(self.E, getattr(torch, precision)).eval()
-        return self._encoders[precision]
+        return self._in_precision("E", CastEncoder, precision)
 
     def centre_net_in(self, precision: str = "float32"):
         """The centre-vote net in `precision` (`settings.PRECISIONS`; its last layer stays
         float32, `precision.CastCentreNet`)."""
-        precision = self.resolve_precision(precision)
-        if precision == "float32" or self.centre_net is None:
-            return self.centre_net
-        if precision not in self._centre_nets:
-            self._centre_nets[precision] = CastCentreNet(self.centre_net,
-                                                         getattr(torch, precision)).eval()
-        return self._centre_nets[precision]
+        return self._in_precision("centre_net", CastCentreNet, precision)
 
     def centre_votes(self, x, fg, n: int, precision: str = "float32") -> torch.Tensor:
         """(B, 1, 64, 64) inputs and (B, 64, 64) foreground -> the centre votes' labels
