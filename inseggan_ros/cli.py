@@ -490,7 +490,8 @@ def cmd_loop(args) -> int:
 
         from .pilematch import PileMatchConfig
 
-        cfg = replace(cfg, match_piles=PileMatchConfig(seed=args.match_seed, **grid))
+        cfg = replace(cfg, match_piles=PileMatchConfig(seed=args.match_seed,
+                                                       workers=args.workers, **grid))
     elif args.match_pieces != 2 or args.match_walls != 8 or args.match_seed != 0:
         raise ValueError("--match-pieces, --match-walls and --match-seed shape --match-piles' "
                          "discs; valid: with --match-piles")
