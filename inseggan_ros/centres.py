@@ -390,8 +390,13 @@ def piles_part(sim) -> str | None:
         return f"the learned rod of `{obj}`"
     if fit and fit["config"].get("start") == "discs":
         how = f"fitted {fit['iteration']} iterations" if fit["iteration"] else "not fitted"
+        hole = fit["config"].get("hole", 0.0)
         if fit.get("discs"):  # `shape-fit --match-piles`
-            how = "the widest sized by simulated piles, " + how
+            how = ("sized by simulated piles, " if hole else
+                   "the widest sized by simulated piles, ") + how
+        if hole:  # `--pile-holes`
+            return (f"the learned rod's profile as a hexagonal nut with a hole {hole:g} of its "
+                    f"width (6 ring sectors), {how}, from `{obj}`")
         return (f"the learned rod's profile as {cfg.get('pieces')} flat-ended discs, {how}, "
                 f"from `{obj}`")
     return (f"the learned template of `{obj}`, {cfg.get('pieces')} convex pieces of "

@@ -359,6 +359,8 @@ def cmd_self_fit(args) -> int:
 
 
 def cmd_shape_fit(args) -> int:
+    from dataclasses import replace
+
     from . import checkpoint
     from . import data as data_mod
     from .loop import BagFrames, _model_file, _same_view
@@ -385,24 +387,25 @@ def cmd_shape_fit(args) -> int:
         val_x = data_mod.load_sim_split(frames, "val", limit=cfg.val_frames)["x"]
         report = _shape_report(file, frames)
     t0 = time.perf_counter()
-    discs = None
+    discs, hole = None, 0.0
     if args.match_piles:
         from .pilematch import PileMatchConfig, search
 
         m = search(file, cfg, frames, train_x, args.out / "match",
                    PileMatchConfig(seed=args.seed, workers=args.workers, **grid),
                    progress=not args.quiet, report=report)
-        discs, best = m["discs"], m["best"]
+        discs, best, hole = m["discs"], m["best"], m.get("hole", 0.0)
         print(f"head matched by {len(m['coarse']) + len(m['fine'])} variants' piles: length x"
               f"{best['length']:g}, radius x{best['radius']:g}"
               + (f", shaft x{best['shaft']:g}" if best.get("shaft", 1) != 1 else "")
               + (f", offset {best['offset']:g}" if best.get("offset") else "")
               + (f", stretched x{best['stretch']:g}" if best.get("stretch", 1) != 1 else "")
+              + (f", a hole x{hole:g} as wide" if hole else "")
               + f" (heights' W1 {best['distance']:.4f}"
               + (f"; IoU with the true part {best['iou']:.3f}" if "iou" in best else "")
               + f"); {args.out / 'match' / 'match.png'}")
-    s = fit_shape(file, train_x, args.out, cfg, val_x=val_x, progress=not args.quiet,
-                  report=report, discs=discs)
+    s = fit_shape(file, train_x, args.out, replace(cfg, hole=hole), val_x=val_x,
+                  progress=not args.quiet, report=report, discs=discs)
     first, last = s["first"] or {}, s["best"] or s["last"] or {}
     line = (f"shape fitted in {(time.perf_counter() - t0) / 60:.1f} min, {s['iterations']} "
             f"iterations on {s['frames']} frames")
@@ -432,6 +435,10 @@ def _pile_grid_args(p) -> None:
     p.add_argument("--pile-stretches", type=_numbers,
                    help="--match-piles: the whole template's length factors, radii kept (1; a "
                         "rod learned too short: e.g. 1,1.25,1.5)")
+    p.add_argument("--pile-holes", type=_numbers,
+                   help="--match-piles: one disc (--match-pieces 1, --match-walls 12) as a "
+                        "hexagonal nut whose hole is these fractions of its width (0: a solid "
+                        "disc; e.g. 0,0.5,0.65)")
     p.add_argument("--coarse-piles", type=int,
                    help="--match-piles: piles of each variant of the coarse grid (200)")
     p.add_argument("--fine-piles", type=int,
@@ -444,12 +451,13 @@ def _pile_grid(args) -> dict:
     --match-piles."""
     grid = {"lengths": args.pile_lengths, "radii": args.pile_radii, "shafts": args.pile_shafts,
             "offsets": args.pile_offsets, "stretches": args.pile_stretches,
+            "holes": args.pile_holes,
             "piles": args.coarse_piles, "fine_piles": args.fine_piles}
     grid = {k: v for k, v in grid.items() if v is not None}
     if grid and not args.match_piles:
         raise ValueError("--pile-lengths, --pile-radii, --pile-shafts, --pile-offsets, "
-                         "--pile-stretches, --coarse-piles and --fine-piles are --match-piles' "
-                         "grid; valid: with --match-piles")
+                         "--pile-stretches, --pile-holes, --coarse-piles and --fine-piles are "
+                         "--match-piles' grid; valid: with --match-piles")
     return grid
 
 

@@ -661,8 +661,8 @@ def match_stage(file: Path, data, out: Path, cfg: LoopConfig, progress: bool = T
         val = _user_frames(data, prep, "val", shape_cfg.val_frames)["x"]
     m = search(file, shape_cfg, data, x, out / "search",
                replace(cfg.match_piles, workers=cfg.workers), progress)
-    return Path(fit_shape(file, x, out, shape_cfg, val_x=val, progress=progress,
-                          discs=m["discs"])["model"])
+    return Path(fit_shape(file, x, out, replace(shape_cfg, hole=m.get("hole", 0.0)), val_x=val,
+                          progress=progress, discs=m["discs"])["model"])
 
 
 def scale_check(file: Path, data, out: Path, cfg: LoopConfig) -> dict:

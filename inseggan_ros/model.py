@@ -450,6 +450,21 @@ class SphereGenerator(TemplateGenerator):
 
 CONVEX_MIN_EXTENT = 0.03  # image half-widths (about a pixel): every piece holds a ball this big
 CONVEX_MAX_TILT = 0.6  # a normal leans at most asin(0.6) = 37 degrees from its prism direction
+RING_PIECES, RING_WALLS = 6, 12  # a hexagonal nut (`ConvexGenerator.init_ring`): six sectors,
+# walls every 30 degrees
+
+
+def check_ring(disc, hole: float) -> None:
+    """Raises ValueError unless the disc (x0, x1, r) can be a ring with a hole of `hole` x r
+    (`ConvexGenerator.init_ring`): each sector must hold its own centre's ball and its
+    neighbour's."""
+    x0, x1, r = (float(v) for v in disc)
+    if (not 0 < hole < 1 or x1 - x0 <= 2 * CONVEX_MIN_EXTENT
+            or r * (1 - hole) <= 2.2 * CONVEX_MIN_EXTENT):
+        raise ValueError(f"ring of disc {tuple(disc)} with hole {hole:g} invalid; valid: a hole "
+                         f"in (0, 1) x the radius leaving a wall thicker than "
+                         f"{2.2 * CONVEX_MIN_EXTENT:g}, a disc longer than "
+                         f"{2 * CONVEX_MIN_EXTENT:g}")
 
 
 def _softplus_inverse(y: torch.Tensor) -> torch.Tensor:
@@ -539,6 +554,51 @@ class ConvexGenerator(TemplateGenerator):
         support = torch.cat([((x1 - x0) / 2)[:, None].expand(K, 2), r[:, None].expand(K, P - 2)], 1)
         _, reach = self._normals_reach()  # with the tilts zeroed above
         self.extent.copy_(_softplus_inverse((support - reach - CONVEX_MIN_EXTENT).clamp_min(1e-3)))
+
+    @torch.no_grad()
+    def init_ring(self, disc, hole: float, axis_height: float = 0.0) -> None:
+        """The disc `disc` (x0, x1, r: about the template's x axis, as `init_discs`) as a
+        hexagonal nut: six flats at distance r from the axis (its apothem) and a through
+        hole whose six faces lie at `hole` x r, one piece per flat (a ring sector).
+
+        Sector k spans the angles 60k +- 30 degrees about the axis: its outer flat is wall 2k
+        of the 12 (walls every 30 degrees), its hole face wall 2k + 6, its two cuts walls 2k + 4
+        and 2k + 8, through the axis, each reaching CONVEX_MIN_EXTENT beyond it into the
+        neighbour (`template.ring_sector_planes`' overlap: no seams in the soft render), where
+        the neighbours' flats (walls 2k +- 2) bound it; its other walls are out of the way,
+        twice as far as the flats. The piece's centre is on
+        its cut with the next sector, halfway between hole and flat, where both sectors hold
+        it and its ball: piece k + 1 reaches back to it (`halfspaces`), so the six make one
+        connected body with the hole left open. Why: a nut's hole and flats are what the
+        piles of a solid disc lack (docs/experiments.md, 2026-12-03)."""
+        K, P = self.extent.shape
+        if (K, P) != (RING_PIECES, RING_WALLS + 2):
+            raise ValueError(f"a ring is {RING_PIECES} pieces of {RING_WALLS} walls; this "
+                             f"template has {K} pieces of {P - 2} walls")
+        check_ring(disc, hole)
+        x0, x1, r = (float(v) for v in disc)
+        dev = self.extent.device
+        self.orientation.copy_(torch.tensor([0.0, math.pi / 2, 0.0], device=dev).expand(K, 3))
+        self.tilt.zero_()
+        self.centre.zero_()
+        n, _ = self._normals_reach()  # (K, P, 3): the same prism directions for every piece
+        mid = (r * (1 + hole) / 2) / math.cos(math.pi / 6)  # from the axis, on the cut
+        axis = torch.tensor([(x0 + x1) / 2, 0.0, float(axis_height)], device=dev)
+        k = torch.arange(K, device=dev)
+        self.centre.copy_(axis + mid * n[k, 2 + 2 * k + 1])  # wall 2k + 1: 60k + 30 degrees
+        # the offsets wanted, along the world normals (through the axis for the walls)
+        along = (n * axis).sum(-1)  # (K, P)
+        want = torch.full((K, P), 2 * r, device=dev)  # walls out of the way
+        want[:, :2] = (x1 - x0) / 2  # the caps (along +-x)
+        for j in (0, 2, 10):  # its flat, and its neighbours' (past the cuts' overlap)
+            want[k, 2 + (2 * k + j) % 12] = r
+        want[k, 2 + (2 * k + 6) % 12] = -hole * r
+        want[k, 2 + (2 * k + 4) % 12] = 1.05 * CONVEX_MIN_EXTENT  # the cuts: just past the
+        want[k, 2 + (2 * k + 8) % 12] = 1.05 * CONVEX_MIN_EXTENT  # centres' balls
+        n, reach = self._normals_reach()
+        own = (n * self.centre[:, None]).sum(-1)  # each plane's distance from its centre
+        self.extent.copy_(_softplus_inverse(
+            (along + want - own - reach - CONVEX_MIN_EXTENT).clamp_min(1e-3)))
 
     @torch.no_grad()
     def init_from_data(self, x, n_instances: int) -> tuple[float, float, float]:

@@ -44,7 +44,7 @@ from scipy.stats import wasserstein_distance
 from tqdm import tqdm
 
 from .evaluate import write_json
-from .model import CONVEX_MIN_EXTENT
+from .model import CONVEX_MIN_EXTENT, RING_WALLS, check_ring
 
 Discs = list[tuple[float, float, float]]
 
@@ -56,6 +56,8 @@ class PileMatchConfig:
     shafts: tuple[float, ...] = (1.0,)  # the other discs' radius, x theirs (a flange's shaft)
     offsets: tuple[float, ...] = (0.0,)  # a disc between two: its middle moved, x the length
     stretches: tuple[float, ...] = (1.0,)  # the whole template's length, x its own (radii kept)
+    holes: tuple[float, ...] = (0.0,)  # above 0: the one disc as a hexagonal nut with a hole
+    # of this fraction of its apothem (`ConvexGenerator.init_ring`); 0: a solid disc
     piles: int = 200  # simulated piles of each variant of the coarse grid
     fine_piles: int = 600  # of the fine grid: half the coarse steps about its best, 3 x 3
     # (0: no fine grid)
@@ -70,6 +72,10 @@ class PileMatchConfig:
             if len(v) < least or any(f <= 0 for f in v) or list(v) != sorted(set(v)):
                 raise ValueError(f"{name} {v!r} invalid; valid: {('one', 'two')[least - 1]} or "
                                  "more increasing factors above 0")
+        if (not self.holes or list(self.holes) != sorted(set(self.holes))
+                or not all(0 <= h < 1 for h in self.holes)):
+            raise ValueError(f"holes {self.holes!r} invalid; valid: one or more increasing "
+                             "fractions in [0, 1) of the disc's apothem (0: no hole)")
         if not self.offsets or list(self.offsets) != sorted(set(self.offsets)):
             raise ValueError(f"offsets {self.offsets!r} invalid; valid: one or more increasing "
                              "fractions of the template's length")
@@ -135,18 +141,19 @@ def _fine(values: tuple[float, ...], best: float) -> tuple[float, ...]:
     return tuple(round(v, 4) for v in (best - lo, best, best + hi) if v > 0)
 
 
-def match_head(discs: Discs, user_x: np.ndarray, make: Callable[[Discs, Path], Path],
+def match_head(discs: Discs, user_x: np.ndarray, make: Callable[[Discs, float, Path], Path],
                piles: Callable[[Path, Path, int, int], np.ndarray], out,
                cfg: PileMatchConfig = PileMatchConfig(), progress: bool = True,
                report: Callable[[Path], dict] | None = None) -> dict:
     """The head of `discs` sized by pile statistics -> summary (also out/summary.json): every
-    variant measured and the discs kept ("discs"). `user_x`: the user's frames (N, 1, H, W);
-    `make(discs, file)` writes a model with those discs to `file`; `piles(model_file, folder,
-    count, seed)` simulates `count` piles of it into `folder` and returns their frames as the
-    user's are cut. Each variant's result is kept in out/variants.jsonl as it is measured, so a
-    killed search resumes where it stopped (and one with other grids reuses the variants
-    measured alike); `report(model_file)` (a library part's true shape,
-    for the record only) is added to each."""
+    variant measured, the discs kept ("discs") and their hole ("hole", 0: none). `user_x`: the
+    user's frames (N, 1, H, W); `make(discs, hole, file)` writes a model with those discs to
+    `file` (with `hole` above 0 the one disc as a ring, `cfg.holes`); `piles(model_file,
+    folder, count, seed)` simulates `count` piles of it into `folder` and returns their frames
+    as the user's are cut. Each variant's result is kept in out/variants.jsonl as it is
+    measured, so a killed search resumes where it stopped (and one with other grids reuses the
+    variants measured alike); `report(model_file)` (a library part's true shape, for the record
+    only) is added to each."""
     out = Path(out)
     config = json.loads(json.dumps(asdict(cfg)))  # as summary.json holds it
     start = [list(map(float, s)) for s in discs]
@@ -165,7 +172,8 @@ def match_head(discs: Discs, user_x: np.ndarray, make: Callable[[Discs, Path], P
     done = {}  # a variant measured with the same piles and user frames is not measured again
     if log.is_file():
         for line in log.read_text().splitlines():
-            row = {"shaft": 1.0, "offset": 0.0, "stretch": 1.0, **json.loads(line)}
+            row = {"shaft": 1.0, "offset": 0.0, "stretch": 1.0, "hole": 0.0,
+                   **json.loads(line)}
             done[(*_variant(row), row["piles"], row["seed"], row["frames"])] = row
 
     def measure(stage: str, grid: list[tuple[float, ...]], count: int) -> list[dict]:
@@ -173,14 +181,15 @@ def match_head(discs: Discs, user_x: np.ndarray, make: Callable[[Discs, Path], P
         for v in tqdm(grid, desc=f"piles ({stage})", unit="variant", disable=not progress):
             key = (*v, count, cfg.seed, len(user))
             if key not in done:
-                a, b, c, o, e = v
+                a, b, c, o, e, h = v
                 name = (f"len{a:g}_rad{b:g}" + (f"_shaft{c:g}" if c != 1 else "")
                         + (f"_off{o:g}" if o else "") + (f"_str{e:g}" if e != 1 else "")
-                        + f"_piles{count}")
-                file = make(head_variant(discs, *v), out / "variants" / f"{name}.pt")
+                        + (f"_hole{h:g}" if h else "") + f"_piles{count}")
+                file = make(head_variant(discs, *v[:5]), h, out / "variants" / f"{name}.pt")
                 sim = piles(file, out / "piles" / name, count, cfg.seed)
                 row = {"stage": stage, "length": a, "radius": b, "shaft": c, "offset": o,
-                       "stretch": e, "piles": count, "seed": cfg.seed, "frames": len(user),
+                       "stretch": e, "hole": h, "piles": count, "seed": cfg.seed,
+                       "frames": len(user),
                        "distance": float(wasserstein_distance(heights(sim), ref)),
                        **(report(file) if report else {})}
                 with open(log, "a") as f:
@@ -189,15 +198,22 @@ def match_head(discs: Discs, user_x: np.ndarray, make: Callable[[Discs, Path], P
             rows.append({**done[key], "stage": stage})
         return rows
 
+    if any(cfg.holes) and len(discs) != 1:
+        raise ValueError(f"holes {cfg.holes} make a ring of one disc; valid: a template of one "
+                         f"disc, not {len(discs)}")
+
     def valid(v: tuple[float, ...]) -> bool:
         try:
-            head_variant(discs, *v)
-        except ValueError:  # a head too short for its neighbours, or offset too far
-            return False
+            d = head_variant(discs, *v[:5])
+            if v[5]:
+                check_ring(d[0], v[5])
+        except ValueError:  # a head too short for its neighbours, offset too far, a ring's
+            return False  # wall too thin
         return True
 
     coarse = measure("coarse", [v for v in itertools.product(
-        cfg.lengths, cfg.radii, cfg.shafts, cfg.offsets, cfg.stretches) if valid(v)], cfg.piles)
+        cfg.lengths, cfg.radii, cfg.shafts, cfg.offsets, cfg.stretches, cfg.holes)
+        if valid(v)], cfg.piles)
     if not coarse:
         raise ValueError("no variant of the grid keeps every disc of the template; valid: "
                          "longer heads or smaller offsets")
@@ -211,15 +227,17 @@ def match_head(discs: Discs, user_x: np.ndarray, make: Callable[[Discs, Path], P
         best = min(fine, key=lambda r: r["distance"])
     summary = {"config": config, "discs_before": start,
                "coarse": coarse, "fine": fine, "best": best,
-               "discs": [list(s) for s in head_variant(discs, *_variant(best))]}
+               "discs": [list(s) for s in head_variant(discs, *_variant(best)[:5])],
+               "hole": _variant(best)[5]}
     _plot(coarse, cfg, out / "match.png")
     write_json(out / "summary.json", summary)
     return summary
 
 
-def _variant(row: dict) -> tuple[float, float, float, float, float]:
-    """A measured variant's factors, as `head_variant` takes them."""
-    return row["length"], row["radius"], row["shaft"], row["offset"], row["stretch"]
+def _variant(row: dict) -> tuple[float, float, float, float, float, float]:
+    """A measured variant's factors: `head_variant`'s five, then its hole (0: none)."""
+    return (row["length"], row["radius"], row["shaft"], row["offset"], row["stretch"],
+            row.get("hole", 0.0))
 
 
 def _plot(rows: list[dict], cfg: PileMatchConfig, path: Path) -> None:
@@ -240,7 +258,8 @@ def _plot(rows: list[dict], cfg: PileMatchConfig, path: Path) -> None:
     ax.set_ylabel("head length (x the discs')")
     ax.set_title("piles' heights vs the frames' (W1)"
                  + (", best of the other factors"
-                    if len(cfg.shafts) * len(cfg.offsets) * len(cfg.stretches) > 1 else ""))
+                    if len(cfg.shafts) * len(cfg.offsets) * len(cfg.stretches)
+                    * len(cfg.holes) > 1 else ""))
     fig.colorbar(im, ax=ax)
     fig.tight_layout()
     tmp = path.with_suffix(".tmp.png")
@@ -249,13 +268,17 @@ def _plot(rows: list[dict], cfg: PileMatchConfig, path: Path) -> None:
     tmp.replace(path)
 
 
-def disc_model(rod_state: dict, shape_cfg, discs: Discs, file, source="checkpoint") -> Path:
-    """The rod model `rod_state` with the disc template `discs` (`shapefit.convex_from_rod`)
-    written to `file`: a model `simulate --object` piles up."""
+def disc_model(rod_state: dict, shape_cfg, discs: Discs, file, source="checkpoint",
+               hole: float = 0.0) -> Path:
+    """The rod model `rod_state` with the disc template `discs` (`shapefit.convex_from_rod`;
+    with `hole` above 0 the one disc as a ring) written to `file`: a model `simulate
+    --object` piles up."""
+    from dataclasses import replace
+
     from . import checkpoint
     from .shapefit import convex_from_rod
 
-    new, G, E = convex_from_rod(rod_state, shape_cfg, source, discs=discs)
+    new, G, E = convex_from_rod(rod_state, replace(shape_cfg, hole=hole), source, discs=discs)
     return checkpoint.save(file, {
         **new, "generator": {k: v.detach().cpu() for k, v in G.state_dict().items()},
         "encoder": {k: v.detach().cpu() for k, v in E.state_dict().items()}})
@@ -285,8 +308,13 @@ def search(rod_file, shape_cfg, data, user_x: np.ndarray, out,
     view = pile_view(data, state)
     meta = None if isinstance(data, BagFrames) else load_meta(data)
 
-    def make(discs: Discs, file: Path) -> Path:
-        return disc_model(state, shape_cfg, discs, file, rod_file)
+    ring = any(cfg.holes)
+    if ring and (shape_cfg.pieces, shape_cfg.walls) != (1, RING_WALLS):
+        raise ValueError(f"holes {cfg.holes} make a ring of one disc; valid: pieces 1 and walls "
+                         f"{RING_WALLS}, not {shape_cfg.pieces} and {shape_cfg.walls}")
+
+    def make(discs: Discs, hole: float, file: Path) -> Path:
+        return disc_model(state, shape_cfg, discs, file, rod_file, hole)
 
     def piles(file: Path, folder: Path, count: int, seed: int) -> np.ndarray:
         shutil.rmtree(folder, ignore_errors=True)  # of a search killed while simulating it
@@ -302,6 +330,7 @@ def search(rod_file, shape_cfg, data, user_x: np.ndarray, out,
         return {"iou": f["iou"], "dims_mm": f["dims_template_mm"]}
 
     _, rod, _ = checkpoint.build_models(state, rod_file)
-    discs = rod_discs(rod, shape_cfg.pieces, shape_cfg.walls)
+    # a ring's disc: the hexagon of the rod's cross-section (`shapefit.start_discs`)
+    discs = rod_discs(rod, shape_cfg.pieces, 6 if ring else shape_cfg.walls)
     return match_head(discs, user_x, make, piles, out, cfg, progress,
                       fidelity if report else None)

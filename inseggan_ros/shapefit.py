@@ -47,7 +47,8 @@ from tqdm import tqdm
 
 from . import checkpoint, losses
 from .evaluate import write_json
-from .model import CONVEX_MIN_EXTENT, ConvexGenerator, ModelConfig, SphereGenerator
+from .model import (CONVEX_MIN_EXTENT, RING_PIECES, RING_WALLS, ConvexGenerator, ModelConfig,
+                    SphereGenerator)
 
 
 @dataclass(frozen=True)
@@ -66,6 +67,9 @@ class ShapeFitConfig:
     # foreground height, where thinner than the rod) or "rod" (the rod's diameter)
     start: str = "box"  # the starting template: "box" (`rod_box`, every piece a copy) or
     # "discs" (`rod_discs`: the rod's radius profile as a stack of `pieces` prisms)
+    hole: float = 0.0  # with start "discs": above 0, the one disc (pieces 1) as a hexagonal nut
+    # whose hole's faces lie at this fraction of its apothem (`ConvexGenerator.init_ring`: six
+    # pieces of 12 walls)
     seed: int = 0
 
     def __post_init__(self):
@@ -82,6 +86,13 @@ class ShapeFitConfig:
             raise ValueError(f"thickness {self.thickness!r} invalid; valid: data, rod")
         if self.start not in ("box", "discs"):
             raise ValueError(f"start {self.start!r} invalid; valid: box, discs")
+        if not 0 <= self.hole < 1:
+            raise ValueError(f"hole {self.hole!r} invalid; valid: 0 (no hole) or a fraction "
+                             "of the disc's apothem in (0, 1)")
+        if self.hole and (self.start, self.pieces, self.walls) != ("discs", 1, RING_WALLS):
+            raise ValueError(f"hole {self.hole:g} makes a ring of one disc; valid: with start "
+                             f"discs, pieces 1 and walls {RING_WALLS} (not {self.start}, "
+                             f"{self.pieces}, {self.walls})")
         for key in ("encoder_lr", "template_lr"):
             if not 0 < getattr(self, key) < 1:
                 raise ValueError(f"{key} {getattr(self, key)!r} invalid; valid: in (0, 1)")
@@ -173,6 +184,12 @@ def rod_discs(G: SphereGenerator, pieces: int, walls: int, samples: int = 240
     return discs[::-1] if spill(discs[::-1]) < spill(discs) else discs
 
 
+def start_discs(G: SphereGenerator, cfg: ShapeFitConfig) -> list[tuple[float, float, float]]:
+    """The discs `cfg` starts from (`rod_discs`): a ring's one disc (`cfg.hole`) as the
+    hexagon of the rod's cross-section, whatever the walls that build it."""
+    return rod_discs(G, cfg.pieces, 6 if cfg.hole else cfg.walls)
+
+
 def spill(discs) -> float:
     """The volume (per pi) a stack of discs, built as pieces in this order, holds beyond the
     discs themselves: each piece reaches back to the previous piece's centre
@@ -219,13 +236,18 @@ def convex_from_rod(state: dict, cfg: ShapeFitConfig, source="checkpoint", x=Non
         raise ValueError(f"{source}: shape fitting starts from a rod model (renderer 'spheres'), "
                          f"not {rod.cfg.renderer!r}")
     mcfg = {k: v for k, v in state["model_config"].items() if k != "template_size"}
-    mcfg.update(renderer="convex", pieces=cfg.pieces, walls=cfg.walls, floor_contact=True)
+    mcfg.update(renderer="convex", pieces=RING_PIECES if cfg.hole else cfg.pieces,
+                walls=cfg.walls, floor_contact=True)
     G = ConvexGenerator(ModelConfig.from_dict(mcfg))
     G.pose.load_state_dict(rod.pose.state_dict())
     if cfg.start == "discs":  # about the pose's origin, as the rod's spheres are, lifted by
         # the floor contact instead of the rod's `lift`: so the rod's poses place them where
         # they placed it (the lift in the template's own frame would turn with each pose)
-        G.init_discs(piece_order(discs or rod_discs(rod, cfg.pieces, cfg.walls)), 0.0)
+        discs = discs or start_discs(rod, cfg)
+        if cfg.hole:
+            G.init_ring(discs[0], cfg.hole, 0.0)
+        else:
+            G.init_discs(piece_order(discs), 0.0)
     else:
         G.init_box(rod_box(rod, x if cfg.thickness == "data" else None))
     # without the rod encoder's distillation record: the encoder's next fit (the loop's) is

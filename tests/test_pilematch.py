@@ -116,6 +116,41 @@ def test_a_uniform_rod_gets_the_flange_its_frames_were_made_of(tmp_path):
     assert flange[2] > 2 * max(shaft[2], other[2])
 
 
+def test_a_nut_s_piles_choose_a_ring_with_its_hole_over_a_solid_disc(tmp_path):
+    """`--pile-holes`: the one disc of a nut's rod as a hexagonal nut of six ring sectors. The
+    frames are piles of such a nut (its hole 0.6 of its width), and the search over solid
+    discs and rings keeps the ring of that hole, length and radius; the model written of it
+    is one body of six pieces with its hole open."""
+    from inseggan_ros import shape
+
+    nut = REPO / "models" / "hex_nut" / "model.pt"
+    ring = ShapeFitConfig(pieces=1, walls=12, iterations=0, start="discs")
+    state = checkpoint.load(nut)
+    discs = rod_discs(checkpoint.build_models(state, nut)[1], 1, 6)
+    truth = disc_model(state, ring, head_variant(discs, 0.4, 1.1), tmp_path / "t.pt", nut,
+                       hole=0.6)
+    user = tmp_path / "user"
+    generate(DatasetSpec(SceneConfig(object=str(truth), instances=5),
+                         {"train": 48, "val": 0, "test": 0}, seed=5), user, progress=False)
+    x = load_sim_split(user, "train")["x"]
+    cfg = PileMatchConfig(lengths=(0.4, 0.8), radii=(1.1, 1.3), holes=(0.0, 0.6), piles=24,
+                          fine_piles=0, seed=1)
+    s = search(nut, ring, user, x, tmp_path / "match", cfg, progress=False)
+    best = s["best"]
+    assert (best["hole"], best["length"], best["radius"]) == (0.6, 0.4, 1.1), s["coarse"]
+    assert s["hole"] == 0.6 and len(s["coarse"]) == 8
+    _, G, _ = checkpoint.build_models(checkpoint.load(truth), truth)
+    pieces = shape.template_pieces(G)
+    (x0, x1, r), = s["discs"]
+    axis, wall = [(x0 + x1) / 2, 0.0, 0.0], [(x0 + x1) / 2, 0.0, -0.8 * r]
+    assert len(pieces) == 6 and shape.components(pieces) == 1
+    assert list(shape.occupancy(pieces, np.array([axis, wall]))) == [False, True]
+    with pytest.raises(ValueError, match="holes"):
+        PileMatchConfig(holes=(0.0, 1.0))
+    with pytest.raises(ValueError, match="walls 12"):  # a ring of discs of 8 walls
+        search(nut, replace(ring, walls=8), user, x, tmp_path / "m8", cfg, progress=False)
+
+
 def test_a_recording_s_piles_are_seen_through_the_camera_its_frames_give(tmp_path):
     """From a bag (depth and CameraInfo, no labels): the variants are piled in the bin and seen
     through the camera estimated from the recording, and cut as its frames are."""

@@ -156,7 +156,8 @@ def test_shape_fit_with_no_iterations_writes_the_discs_a_simulator_drops(tmp):
                 "--pieces", "2", "--walls", "8", "--iterations", "0", "--frames", "8", "--quiet",
                 check=True, timeout=300)
     assert "IoU with the true part" in p.stdout, p.stdout + p.stderr
-    for flag in ("--pile-stretches", "--fine-piles"):  # the search's grid, refused without it
+    # the search's grid, refused without it
+    for flag in ("--pile-stretches", "--pile-holes", "--fine-piles"):
         bad = run_cli("shape-fit", "--model", MODEL, "--data", user, "--out", tmp / "bad",
                       "--start", "discs", "--iterations", "0", flag, "1", "--quiet")
         assert bad.returncode != 0 and "valid: with --match-piles" in bad.stderr, bad.stderr
@@ -183,6 +184,38 @@ def test_shape_fit_with_no_iterations_writes_the_discs_a_simulator_drops(tmp):
     assert piles_part(user) == "the simulator's bolt (the true part)"
     with pytest.raises(ValueError, match="iterations"):
         ShapeFitConfig(iterations=-1)
+
+
+def test_a_ring_of_six_sectors_is_one_hexagonal_nut_with_its_hole_open():
+    """`ConvexGenerator.init_ring`: six convex sectors make the hexagonal ring of that
+    thickness, apothem and hole (volumetric IoU on a voxel grid), one connected body; a
+    wall too thin for a sector to hold its neighbour's centre is refused, as is a hole on a
+    template that is not one disc of 12 walls."""
+    from inseggan_ros import shape
+    from inseggan_ros.model import ModelConfig
+
+    G = ConvexGenerator(ModelConfig(renderer="convex", composite="zbuffer", pieces=6,
+                                    walls=12, floor_contact=True))
+    x0, x1, r, hole = -0.1, 0.14, 0.25, 0.6
+    G.init_ring((x0, x1, r), hole)
+    pieces = shape.template_pieces(G)
+    assert shape.components(pieces) == 1
+    g = np.linspace(-0.4, 0.4, 121)
+    p = np.stack([v.ravel() for v in np.meshgrid(g, g, g, indexing="ij")], 1)
+    ang = np.arange(6) * np.pi / 3  # the flats' normals about the x axis
+    flats = (p @ np.stack([np.zeros(6), np.sin(ang), -np.cos(ang)])).max(1)
+    true = (p[:, 0] >= x0) & (p[:, 0] <= x1) & (flats <= r) & (flats >= hole * r)
+    got = shape.occupancy(pieces, p)
+    assert (got & true).sum() / (got | true).sum() > 0.97  # measured 0.99
+    assert not got[flats < 0.9 * hole * r].any()  # the hole open
+    with pytest.raises(ValueError, match="wall"):
+        G.init_ring((x0, x1, r), 0.8)  # a wall of 0.05, thinner than 2.2 x 0.03
+    with pytest.raises(ValueError, match="ring"):
+        ConvexGenerator(ModelConfig(renderer="convex", composite="zbuffer", pieces=2,
+                                    walls=12)).init_ring((x0, x1, r), hole)
+    with pytest.raises(ValueError, match="walls 12"):
+        ShapeFitConfig(pieces=1, walls=8, start="discs", hole=0.5)
+    ShapeFitConfig(pieces=1, walls=12, start="discs", hole=0.5)
 
 
 def test_a_short_recording_still_holds_frames_out_to_keep_the_best_fit_by():
