@@ -528,8 +528,9 @@ def cmd_loop(args) -> int:
         best = summary["match"]["best"]
         print(f"piles of a disc template matched by {summary['match']['variants']} variants: "
               f"head length x{best['length']:g}, radius x{best['radius']:g}, shaft "
-              f"x{best['shaft']:g}, stretched x{best['stretch']:g} (heights' W1 "
-              f"{best['distance']:.4f}); {summary['match']['part']}")
+              f"x{best['shaft']:g}, stretched x{best['stretch']:g}"
+              + (f", a nut with a hole x{best['hole']:g} as wide" if best.get("hole") else "")
+              + f" (heights' W1 {best['distance']:.4f}); {summary['match']['part']}")
     if "not_by_thickness" in summary["sizing"]:
         print(f"rod not resized to the frames' thickness: "
               f"{summary['sizing']['not_by_thickness']}")
@@ -1167,7 +1168,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "Tilted bolts: docs/experiments.md, 2026-12-02")
     _pile_grid_args(p)
     p.add_argument("--match-pieces", type=int, default=2,
-                   help="--match-piles: the template's discs (2: a head on a shaft; 3: a flange)")
+                   help="--match-piles: the template's discs (2: a head on a shaft; 3: a flange; "
+                        "1 with --match-walls 12 and --pile-holes: a hexagonal nut)")
     p.add_argument("--match-walls", type=int, default=8,
                    help="--match-piles: side planes of each disc (8)")
     p.add_argument("--match-seed", type=int, default=0,

@@ -24,12 +24,21 @@ tilted camera's bolts: two thirds of the bolt's length) is stretched whole along
 radii kept (`stretches`). The fine grid is over length and radius at the coarse best's shaft,
 offset and stretch.
 
+A nut is a disc with six flats and a hole: piles of a solid disc taught centre votes that lost
+to Felzenszwalb on tilted nuts touching at one height (docs/experiments.md, 2026-12-03). With
+`holes` above 0 the template's one disc is built as a hexagonal nut of six convex ring sectors
+(`ConvexGenerator.init_ring`), its hole's faces at that fraction of its apothem, and the grid
+runs over its thickness (`lengths`), width (`radii`) and hole.
+
     inseggan shape-fit --model models/bolt --data data/bolt --out runs/bolt_head \
         --start discs --pieces 2 --walls 8 --iterations 0 --match-piles
     inseggan shape-fit --model models/pin_connector --data data/pin_connector \
         --out runs/pin_flange2 --start discs --pieces 3 --walls 8 --iterations 0 --match-piles \
         --pile-lengths 0.15,0.25,0.4 --pile-radii 0.9,1,1.1 --pile-shafts 0.5,0.65,0.8 \
         --pile-offsets 0,0.15
+    inseggan shape-fit --model models/hex_nut --data data/hex_nut --out runs/nut_ring \
+        --start discs --pieces 1 --walls 12 --iterations 0 --match-piles \
+        --pile-lengths 0.35,0.42,0.5 --pile-radii 1,1.1,1.2 --pile-holes 0.5,0.65
 """
 from __future__ import annotations
 

@@ -232,6 +232,26 @@ def test_one_command_from_a_bag_learns_the_shape_then_ships_a_model(tmp):
     assert not (tmp / "o").exists()
 
 
+def test_the_loop_piles_a_nut_with_its_hole_where_the_grid_asks_for_one(tmp):
+    """`loop --match-piles --match-pieces 1 --match-walls 12 --pile-holes`: the nut's rod cut
+    into one disc, built as a hexagonal nut of six ring sectors with the hole the search
+    kept; the piles, and the centre votes the model ships with, are of that nut."""
+    rod = REPO / "models" / "hex_nut" / "model.pt"
+    out = tmp / "loop"
+    p = run_cli("loop", "--model", rod, "--bag", REPO / "bags" / "hex_nut_sim_32fc1",
+                "--instances", "5", "--out", out, "--match-piles", "--match-pieces", "1",
+                "--match-walls", "12", "--pile-lengths", "0.4,0.8", "--pile-radii", "1,1.1",
+                "--pile-holes", "0.6", "--coarse-piles", "2", "--fine-piles", "0", "--scenes",
+                "12", "--val-scenes", "4", "--iterations", "0", "--centre-iterations", "8",
+                "--workers", "2", "--quiet", check=True, timeout=900)
+    assert "a nut with a hole x0.6 as wide" in p.stdout, p.stdout
+    part = checkpoint.load(out / "match" / "best.pt")
+    assert (part["model_config"]["pieces"], part["model_config"]["walls"]) == (6, 12)
+    assert part["shape_fit"]["config"]["hole"] == 0.6
+    net = checkpoint.load(out / "model" / "model.pt")["centre_net"]
+    assert "a hexagonal nut with a hole 0.6" in net["piles_part"], net["piles_part"]
+
+
 def test_the_loop_piles_a_disc_template_matched_to_the_frames_and_keeps_the_rod(tmp):
     """`loop --match-piles` (stage `match`, the tilted bolts' recipe in one command): the rod
     is cut into discs whose head is sized by how their piles look against the recording's
