@@ -444,7 +444,8 @@ def label_free_markdown(card: dict) -> str:
         lines += [f"## Against the ground truth ({src.get('labels')})", "",
                   format_table(card["labelled"]), ""]
     lines += ["![qualitative](qualitative.png): input | reconstruction | labels | each instance "
-              "rendered alone" + (" | ground truth" if card.get("labelled") else ""), ""]
+              "rendered alone" + (" | ground truth" if card.get("labelled") else ""), "",
+              *_shape_lines(card)]
     return "\n".join(lines)
 
 
@@ -683,7 +684,10 @@ def add_shape(model_dir, object_name: str | None = None, voxels: int = 30,
 
     model_dir = Path(model_dir)
     card = json.loads((model_dir / "card.json").read_text())
-    name = object_name or card["object"]
+    name = object_name or card.get("object")  # a recording's card names no part
+    if name is None:
+        raise ValueError(f"{model_dir}: its card names no part (a model made from a recording); "
+                         f"valid: --object, one of {', '.join(OBJECTS)}")
     if name not in OBJECTS:
         raise ValueError(f"{name!r}: not a part of the simulator's library, so there is no true "
                          f"shape to compare with; valid: {', '.join(OBJECTS)}")
@@ -692,10 +696,16 @@ def add_shape(model_dir, object_name: str | None = None, voxels: int = 30,
         raise ValueError(f"{model_dir}: renderer {state['model_config'].get('renderer')!r} has "
                          "no explicit template; valid: 'spheres' or 'convex'")
     voxel = shape.part_voxel(name, voxels)
+    # a data set's camera, or the one the loop estimated from a recording
+    camera = card.get("camera") or card.get("training_data", {}).get("camera")
+    if camera is None:
+        raise ValueError(f"{model_dir}: its card records no camera, so the template's size in "
+                         "metres is unknown; valid: a card made by `inseggan export` or "
+                         "`inseggan loop` (a data set's camera, or a recording's estimated one)")
 
     def measure(file: Path, drawing: Path) -> dict:
         st = ckpt.load(file)
-        scale = shape.metres_per_unit(st["preprocess_config"], CameraConfig(**card["camera"]),
+        scale = shape.metres_per_unit(st["preprocess_config"], CameraConfig(**camera),
                                       st["model_config"]["height_gain"])
         G = ckpt.build_models(st, file)[1]
         f = shape.evaluate_generator(G, name, scale, drawing, voxel=voxel)
@@ -713,7 +723,8 @@ def add_shape(model_dir, object_name: str | None = None, voxels: int = 30,
             card["piles_shape"] = {**measure(Path(piles_template), tmp / "piles_shape.png"),
                                    "template": str(piles_template)}
         (tmp / "card.json").write_text(json.dumps(card, indent=2))
-        (tmp / "README.md").write_text(card_markdown(card))
+        (tmp / "README.md").write_text(label_free_markdown(card) if card.get("label_free")
+                                       else card_markdown(card))
 
     write_folder(model_dir, write)
     return card["shape"]
