@@ -118,7 +118,7 @@ def test_a_uniform_rod_gets_the_flange_its_frames_were_made_of(tmp_path):
 
 def test_a_nut_s_piles_choose_a_ring_with_its_hole_over_a_solid_disc(tmp_path):
     """`--pile-holes`: the one disc of a nut's rod as a hexagonal nut of six ring sectors. The
-    frames are piles of such a nut (its hole 0.6 of its width), and the search over solid
+    frames are piles of such a nut (its hole 0.7 of its width), and the search over solid
     discs and rings keeps the ring of that hole, length and radius; the model written of it
     is one body of six pieces with its hole open."""
     from inseggan_ros import shape
@@ -128,17 +128,20 @@ def test_a_nut_s_piles_choose_a_ring_with_its_hole_over_a_solid_disc(tmp_path):
     state = checkpoint.load(nut)
     discs = rod_discs(checkpoint.build_models(state, nut)[1], 1, 6)
     truth = disc_model(state, ring, head_variant(discs, 0.4, 1.1), tmp_path / "t.pt", nut,
-                       hole=0.6)
+                       hole=0.7)
     user = tmp_path / "user"
     generate(DatasetSpec(SceneConfig(object=str(truth), instances=5),
-                         {"train": 48, "val": 0, "test": 0}, seed=5), user, progress=False)
+                         {"train": 64, "val": 0, "test": 0}, seed=5), user, progress=False)
     x = load_sim_split(user, "train")["x"]
-    cfg = PileMatchConfig(lengths=(0.4, 0.8), radii=(1.1, 1.3), holes=(0.0, 0.6), piles=24,
+    # the hole's own effect on the heights is small at this camera's 224 x 224: 40 piles of
+    # each variant keep the ring's distance about three times below the solid disc's (0.006
+    # against 0.019, native and AVX2 alike; 24 piles of a 0.6 hole were within their noise)
+    cfg = PileMatchConfig(lengths=(0.4, 0.8), radii=(1.1, 1.3), holes=(0.0, 0.7), piles=40,
                           fine_piles=0, seed=1)
     s = search(nut, ring, user, x, tmp_path / "match", cfg, progress=False)
     best = s["best"]
-    assert (best["hole"], best["length"], best["radius"]) == (0.6, 0.4, 1.1), s["coarse"]
-    assert s["hole"] == 0.6 and len(s["coarse"]) == 8
+    assert (best["hole"], best["length"], best["radius"]) == (0.7, 0.4, 1.1), s["coarse"]
+    assert s["hole"] == 0.7 and len(s["coarse"]) == 8
     _, G, _ = checkpoint.build_models(checkpoint.load(truth), truth)
     pieces = shape.template_pieces(G)
     (x0, x1, r), = s["discs"]
