@@ -250,6 +250,9 @@ def test_the_loop_piles_a_nut_with_its_hole_where_the_grid_asks_for_one(tmp):
     assert part["shape_fit"]["config"]["hole"] == 0.6
     net = checkpoint.load(out / "model" / "model.pt")["centre_net"]
     assert "a hexagonal nut with a hole 0.6" in net["piles_part"], net["piles_part"]
+    # a recording's card names no part: the true shape to measure against must be given
+    bad = run_cli("card-shape", out / "model")
+    assert bad.returncode == 2 and "names no part" in bad.stderr, bad.stderr
 
 
 def test_the_loop_piles_a_disc_template_matched_to_the_frames_and_keeps_the_rod(tmp):
