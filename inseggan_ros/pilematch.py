@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import itertools
 import json
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Callable
 
@@ -53,7 +53,7 @@ from scipy.stats import wasserstein_distance
 from tqdm import tqdm
 
 from .evaluate import write_json
-from .model import CONVEX_MIN_EXTENT, RING_WALLS, check_ring
+from .model import CONVEX_MIN_EXTENT, check_ring
 
 Discs = list[tuple[float, float, float]]
 
@@ -282,8 +282,6 @@ def disc_model(rod_state: dict, shape_cfg, discs: Discs, file, source="checkpoin
     """The rod model `rod_state` with the disc template `discs` (`shapefit.convex_from_rod`;
     with `hole` above 0 the one disc as a ring) written to `file`: a model `simulate
     --object` piles up."""
-    from dataclasses import replace
-
     from . import checkpoint
     from .shapefit import convex_from_rod
 
@@ -306,7 +304,7 @@ def search(rod_file, shape_cfg, data, user_x: np.ndarray, out,
     from . import checkpoint
     from . import data as data_mod
     from .loop import BagFrames, pile_scene, pile_view
-    from .shapefit import rod_discs
+    from .shapefit import start_discs
     from .sim.dataset import DatasetSpec, generate, load_meta
 
     rod_file = Path(rod_file)
@@ -317,10 +315,8 @@ def search(rod_file, shape_cfg, data, user_x: np.ndarray, out,
     view = pile_view(data, state)
     meta = None if isinstance(data, BagFrames) else load_meta(data)
 
-    ring = any(cfg.holes)
-    if ring and (shape_cfg.pieces, shape_cfg.walls) != (1, RING_WALLS):
-        raise ValueError(f"holes {cfg.holes} make a ring of one disc; valid: pieces 1 and walls "
-                         f"{RING_WALLS}, not {shape_cfg.pieces} and {shape_cfg.walls}")
+    # the grid's rings must be buildable from these discs: the config says so (raises)
+    cut = replace(shape_cfg, hole=max(cfg.holes)) if any(cfg.holes) else shape_cfg
 
     def make(discs: Discs, hole: float, file: Path) -> Path:
         return disc_model(state, shape_cfg, discs, file, rod_file, hole)
@@ -339,7 +335,6 @@ def search(rod_file, shape_cfg, data, user_x: np.ndarray, out,
         return {"iou": f["iou"], "dims_mm": f["dims_template_mm"]}
 
     _, rod, _ = checkpoint.build_models(state, rod_file)
-    # a ring's disc: the hexagon of the rod's cross-section (`shapefit.start_discs`)
-    discs = rod_discs(rod, shape_cfg.pieces, 6 if ring else shape_cfg.walls)
+    discs = start_discs(rod, cut)  # a ring's disc: the hexagon of the rod's cross-section
     return match_head(discs, user_x, make, piles, out, cfg, progress,
                       fidelity if report else None)

@@ -20,6 +20,13 @@ ROD = REPO / "models" / "bolt" / "model.pt"  # a rod of 12 spheres with a rounde
 SHAPE = ShapeFitConfig(pieces=2, walls=8, iterations=0, start="discs")
 
 
+def piles_of(part, folder, count: int) -> np.ndarray:
+    """The user's frames: `count` piles of 5 of `part` (a model file), as the model sees them."""
+    generate(DatasetSpec(SceneConfig(object=str(part), instances=5),
+                         {"train": count, "val": 0, "test": 0}, seed=5), folder, progress=False)
+    return load_sim_split(folder, "train")["x"]
+
+
 def test_the_head_variant_keeps_the_template_s_length_and_its_other_disc():
     discs = [(-1.0, -0.6, 0.3), (-0.6, 1.0, 0.12)]
     (a0, a1, ra), (b0, b1, rb) = head_variant(discs, 0.5, 1.2)
@@ -57,9 +64,7 @@ def test_piles_choose_the_head_the_frames_were_made_of_and_a_search_resumes(tmp_
     discs = rod_discs(rod, 2, 8)
     truth = disc_model(state, SHAPE, head_variant(discs, 0.4, 1.3), tmp_path / "truth.pt", ROD)
     user = tmp_path / "user"  # the user's frames: piles of a short, wide head
-    generate(DatasetSpec(SceneConfig(object=str(truth), instances=5),
-                         {"train": 60, "val": 0, "test": 0}, seed=5), user, progress=False)
-    x = load_sim_split(user, "train")["x"]
+    x = piles_of(truth, user, 60)
     cfg = PileMatchConfig(lengths=(0.4, 1.0), radii=(1.0, 1.3), stretches=(1.0, 1.5), piles=32,
                           fine_piles=0, seed=1)
     out = tmp_path / "match"
@@ -98,9 +103,7 @@ def test_a_uniform_rod_gets_the_flange_its_frames_were_made_of(tmp_path):
     discs = rod_discs(checkpoint.build_models(state, pin)[1], 3, 8)
     truth = disc_model(state, shape, head_variant(discs, 0.25, 1.0, 0.5), tmp_path / "t.pt", pin)
     user = tmp_path / "user"
-    generate(DatasetSpec(SceneConfig(object=str(truth), instances=5),
-                         {"train": 60, "val": 0, "test": 0}, seed=5), user, progress=False)
-    x = load_sim_split(user, "train")["x"]
+    x = piles_of(truth, user, 60)
     cfg = PileMatchConfig(lengths=(0.25, 1.0), radii=(1.0, 1.1), shafts=(0.5, 1.0), piles=24,
                           fine_piles=0, seed=1)
     out = tmp_path / "match"
@@ -130,9 +133,7 @@ def test_a_nut_s_piles_choose_a_ring_with_its_hole_over_a_solid_disc(tmp_path):
     truth = disc_model(state, ring, head_variant(discs, 0.4, 1.1), tmp_path / "t.pt", nut,
                        hole=0.7)
     user = tmp_path / "user"
-    generate(DatasetSpec(SceneConfig(object=str(truth), instances=5),
-                         {"train": 64, "val": 0, "test": 0}, seed=5), user, progress=False)
-    x = load_sim_split(user, "train")["x"]
+    x = piles_of(truth, user, 64)
     # the hole's own effect on the heights is small at this camera's 224 x 224: 40 piles of
     # each variant keep the ring's distance about three times below the solid disc's (0.006
     # against 0.019, native and AVX2 alike; 24 piles of a 0.6 hole were within their noise)
