@@ -176,13 +176,15 @@ def cmd_simulate_bag(args) -> int:
     period = int(1e9 / args.rate) if args.rate > 0 else BAG_PERIOD_NS
     info = CameraInfo.from_camera(cfg.camera)
     with BinSimulator(cfg) as sim, BagWriter(args.out, encoding=args.encoding,
-                                             storage=args.storage) as w:
+                                             storage=args.storage,
+                                             compression=args.compression) as w:
         for k in tqdm(range(args.count), desc="simulating", unit="frame", disable=args.quiet):
             s = sim.render(scene_seed(args.seed, "test", k))
             w.write(BAG_START_NS + k * period, s.depth, s.labels, info)
     size = sum(f.stat().st_size for f in Path(args.out).rglob("*") if f.is_file())
     print(f"wrote {args.out}: {args.count} frames of {args.instances} x {args.object}, "
-          f"{cfg.camera.width}x{cfg.camera.height} {args.encoding}, {args.storage}, "
+          f"{cfg.camera.width}x{cfg.camera.height} {args.encoding}, {args.storage} "
+          f"({w.compression}), "
           f"{size / 1e6:.1f} MB")
     return 0
 
@@ -727,10 +729,8 @@ def _export_label_free(args) -> int:
     from .segment import InferenceConfig
     from .selfcheck import format_measures
 
-    for flag in ("also_profile", "sample_bag"):
-        if getattr(args, flag):
-            raise ValueError(f"--{flag.replace('_', '-')} needs --data (labelled), not a "
-                             "label-free export")
+    if args.also_profile:
+        raise ValueError("--also-profile needs --data (labelled), not a label-free export")
     if args.frames < 1:
         raise ValueError(f"--frames {args.frames} invalid; valid: >= 1")
     # the checkpoint's own settings (an exported model.pt has them), then the flags
@@ -740,12 +740,13 @@ def _export_label_free(args) -> int:
     out = args.out or Path("models") / args.name
     if args.bag:
         card = export_from_bag(args.checkpoint, args.bag, args.name, out, args.topic,
-                               args.labels_topic, args.held_out, args.frames, inference)
+                               args.labels_topic, args.held_out, args.frames, inference,
+                               sample_bag=args.sample_bag)
     else:
         if args.topic or args.labels_topic:
             raise ValueError("--topic and --labels-topic go with --bag, not --data")
         card = export_from_dataset(args.checkpoint, args.data, args.name, out, args.frames,
-                                   inference)
+                                   inference, sample_bag=args.sample_bag)
     print(f"exported {args.name} to {out}: tau {card['tau']:.3f} (from the frames, no labels); "
           f"on {card['source']['held_out_rule']}:")
     print(format_measures(card["measures"]))
@@ -874,6 +875,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rate", type=float, default=10.0, help="recorded frame rate, Hz")
     p.add_argument("--encoding", default="16UC1", choices=["16UC1", "32FC1"])
     p.add_argument("--storage", default="mcap", choices=["mcap", "sqlite3"])
+    p.add_argument("--compression", choices=["zstd", "none"],
+                   help="MCAP chunk compression (default zstd for mcap, none for sqlite3)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--out", required=True, type=Path, help="bag directory to create")
     p.set_defaults(func=cmd_simulate_bag)
@@ -937,7 +940,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, default=200,
                    help="frames per split at most (with --bag: calibration and held-out)")
     p.add_argument("--config-name", help="the named training config, for the card")
-    p.add_argument("--sample-bag", help="name of a shipped bag of this object (tests use it)")
+    p.add_argument("--sample-bag", help="name of a shipped bag of this object with labels: "
+                                        "scored on the card, and again by the tests")
     p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("check", help="segment a few frames of a bag: PNG sheet and label-free "

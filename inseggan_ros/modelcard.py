@@ -262,7 +262,7 @@ TRAINING_ONLY = ("discriminator", "optimizers", "rng", "format", "distill")
 
 def export_label_free(checkpoint_path, name: str, out_dir, calib: dict, held: dict,
                       source: dict, inference=None, vote_piles: dict | None = None,
-                      vote_scales=None) -> dict:
+                      vote_scales=None, sample_bag: str | None = None) -> dict:
     """Ship a model from frames without ground truth (a recording of the user's own part):
     out_dir/model.pt (inference weights, float32, tau calibrated on `calib` without labels,
     the inference settings), card.json, README.md, qualitative.png.
@@ -274,8 +274,9 @@ def export_label_free(checkpoint_path, name: str, out_dir, calib: dict, held: di
     card). `inference`: the test-time settings to ship (default: the checkpoint's).
     `vote_piles`: labelled frames ({x, fg, labels}: the loop's simulated piles) on which the
     superpixel vote's scale is chosen once tau is known (`vote_scale.choose`, among
-    `vote_scales`, default `vote_scale.SCALES`). Accepts a training checkpoint or an exported
-    model.pt."""
+    `vote_scales`, default `vote_scale.SCALES`). `sample_bag`: a shipped bag of the part with
+    labels (`bags/`), scored as the model tests score it again (`sample_bag_scores`). Accepts a
+    training checkpoint or an exported model.pt."""
     from dataclasses import replace
 
     import torch
@@ -304,6 +305,7 @@ def export_label_free(checkpoint_path, name: str, out_dir, calib: dict, held: di
         results = evaluate.run_methods(held, seg.model_cfg.n_instances, seg,
                                        ["kmeans", "felzenszwalb"], progress=False)
         labelled = evaluate.summarise(results, len(held["x"]))
+    bag_scores = sample_bag_scores(seg, sample_bag) if sample_bag else None
 
     keep = {k: v for k, v in state.items() if k not in TRAINING_ONLY}
     keep.update(tau=seg.tau, inference=seg.inference.to_dict(), precision="float32",
@@ -330,6 +332,7 @@ def export_label_free(checkpoint_path, name: str, out_dir, calib: dict, held: di
         "precision": "float32",  # no labels to show that float16 weights change nothing
         "measures": measures, "labelled": labelled, "vote_scale": vote,
         "centre_votes": centres_record(state),
+        "sample_bag": sample_bag, "sample_bag_scores": bag_scores,
     }
 
     def write(tmp: Path) -> None:
@@ -345,7 +348,8 @@ def export_label_free(checkpoint_path, name: str, out_dir, calib: dict, held: di
 def export_from_bag(checkpoint_path, bag, name: str, out_dir, depth_topic: str | None = None,
                     labels_topic: str | None = None, held_out: float = 0.2,
                     frames: int | None = 200, inference=None,
-                    vote_piles: dict | None = None, vote_scales=None) -> dict:
+                    vote_piles: dict | None = None, vote_scales=None,
+                    sample_bag: str | None = None) -> dict:
     """`export_label_free` on a bag: tau from its first frames, the measures on its last
     `held_out` fraction (at most `frames` of each, spread evenly); labels only from
     `labels_topic`, when named."""
@@ -368,12 +372,13 @@ def export_from_bag(checkpoint_path, bag, name: str, out_dir, depth_topic: str |
               "held_out_rule": f"the last {100 * held_out:.0f} % of the bag's frames in time "
                                "order"}
     return export_label_free(checkpoint_path, name, out_dir, calib, held, source, inference,
-                             vote_piles, vote_scales)
+                             vote_piles, vote_scales, sample_bag)
 
 
 def export_from_dataset(checkpoint_path, data_root, name: str, out_dir,
                         frames: int | None = 200, inference=None,
-                        vote_piles: dict | None = None, vote_scales=None) -> dict:
+                        vote_piles: dict | None = None, vote_scales=None,
+                        sample_bag: str | None = None) -> dict:
     """`export_label_free` on a simulated data set, as if it had no labels: tau from its
     validation split without labels, the measures on its test split (whose labels give the
     mIoU rows)."""
@@ -395,7 +400,7 @@ def export_from_dataset(checkpoint_path, data_root, name: str, out_dir,
               "description": f"simulated data set `{data_root}` (val and test splits)",
               "held_out_rule": "its test split"}
     return export_label_free(checkpoint_path, name, out_dir, calib, held, source, inference,
-                             vote_piles, vote_scales)
+                             vote_piles, vote_scales, sample_bag)
 
 
 def _span(values) -> list[int] | None:
@@ -443,7 +448,8 @@ def label_free_markdown(card: dict) -> str:
     if card.get("labelled"):
         lines += [f"## Against the ground truth ({src.get('labels')})", "",
                   format_table(card["labelled"]), ""]
-    lines += ["![qualitative](qualitative.png): input | reconstruction | labels | each instance "
+    lines += [*_bag_line(card),
+              "![qualitative](qualitative.png): input | reconstruction | labels | each instance "
               "rendered alone" + (" | ground truth" if card.get("labelled") else ""), "",
               *_shape_lines(card)]
     return "\n".join(lines)
@@ -723,8 +729,7 @@ def add_shape(model_dir, object_name: str | None = None, voxels: int = 30,
             card["piles_shape"] = {**measure(Path(piles_template), tmp / "piles_shape.png"),
                                    "template": str(piles_template)}
         (tmp / "card.json").write_text(json.dumps(card, indent=2))
-        (tmp / "README.md").write_text(label_free_markdown(card) if card.get("label_free")
-                                       else card_markdown(card))
+        (tmp / "README.md").write_text(markdown(card))
 
     write_folder(model_dir, write)
     return card["shape"]
@@ -863,6 +868,11 @@ def _template_text(m: dict) -> str:
     if m["renderer"] == "convex" and "pieces" in m:
         return f"convex ({m['pieces']} pieces)"
     return m["renderer"]
+
+
+def markdown(card: dict) -> str:
+    """A model folder's README.md: its card as `export` (or `export --bag`) writes it."""
+    return label_free_markdown(card) if card.get("label_free") else card_markdown(card)
 
 
 def card_markdown(card: dict) -> str:

@@ -57,6 +57,33 @@ def test_write_read_round_trip(tmp, storage, encoding):
     assert len(read_all(storage_file)) == 3
 
 
+def test_mcap_chunks_are_compressed_unless_asked_not_to(tmp):
+    """zstd chunks by default for MCAP (depth frames shrink several times; read back
+    unchanged), none on request; sqlite3 has no chunks, so zstd there, or an unknown
+    compression, is refused by name."""
+    frames = _frames(4, shape=(120, 160))
+    for frame in frames:  # a smooth depth image, as a camera's is (uniform noise does not shrink)
+        frame[1][:] = np.linspace(0.3, 0.6, frame[1].size, dtype=np.float32).reshape(frame[1].shape)
+        frame[2][:] = 0
+    sizes = {}
+    for compression in ("zstd", "none"):
+        bags.write_frames(tmp / compression, frames, compression=compression)
+        mcap = next((tmp / compression).glob("*.mcap"))
+        sizes[compression] = mcap.stat().st_size
+        raw = bags.image_codec.metres_to_depth(frames[0][1], "16UC1").tobytes()
+        assert (mcap.read_bytes().find(raw[:400]) == -1) == (compression == "zstd")
+        back = read_all(tmp / compression)
+        np.testing.assert_array_equal(back[0].metres(), read_all(tmp / "zstd")[0].metres())
+    assert sizes["zstd"] < sizes["none"] / 4, sizes
+    bags.write_frames(tmp / "default", frames)
+    assert next((tmp / "default").glob("*.mcap")).stat().st_size < sizes["none"] / 4
+    with pytest.raises(ValueError, match="valid with sqlite3: none"):
+        BagWriter(tmp / "db", storage="sqlite3", compression="zstd")
+    with pytest.raises(ValueError, match="compression 'lz4' invalid; valid: none, zstd"):
+        BagWriter(tmp / "x", compression="lz4")
+    assert not (tmp / "db").exists() and not (tmp / "x").exists()
+
+
 def _raw_bag(path, images, topic="/robot/depth", msgtype="sensor_msgs/msg/Image"):
     """A bag as a robot would record it: our own messages, any topic, no labels, no info."""
     from rosbags.rosbag2 import StoragePlugin, Writer
@@ -93,7 +120,7 @@ def test_shipped_sample_bags_are_small_and_readable():
     names = sorted(p.name for p in BAGS.iterdir() if p.is_dir())
     assert len(names) >= 3
     total = sum(f.stat().st_size for f in BAGS.rglob("*") if f.is_file())
-    assert total < 25e6  # seven sample bags, none above 8 MB (848 x 480 frames are the largest)
+    assert total < 8e6  # zstd-compressed chunks: the 848 x 480 bags about 1 MB each
     encodings = set()
     for name in names:
         frames = read_all(BAGS / name)
@@ -282,7 +309,8 @@ def _rewrite_mcap(src, dst, **writer_options):
 
 @pytest.mark.parametrize("layout", ["chunks", "unchunked"])
 def test_cut_mcap_bag_gives_every_complete_frame(tmp, layout):
-    bags.write_frames(tmp / "bag", _frames(30, shape=(96, 128)))  # 1.1 MB: two chunks
+    # 1.1 MB in uncompressed chunks (two), so that each message's bytes can be found
+    bags.write_frames(tmp / "bag", _frames(30, shape=(96, 128)), compression="none")
     originals = read_all(tmp / "bag")
     mcap = next((tmp / "bag").glob("*.mcap"))
     if layout == "unchunked":
@@ -375,7 +403,7 @@ def test_cli_shows_the_warning_once(tmp):
 def test_bin_replay_node_replays_a_cut_bag_and_warns_once(tmp):
     """The node reads bags through read_frames: a cut recording replays (looping, so it is read
     many times) over real DDS to a separate receiver process, with one warning in its log."""
-    bags.write_frames(tmp / "bag", _frames(8))
+    bags.write_frames(tmp / "bag", _frames(8), compression="none")  # messages found by bytes
     originals = {f.stamp_ns: f for f in read_all(tmp / "bag")}
     (tmp / "bag" / "metadata.yaml").unlink()
     mcap = next((tmp / "bag").glob("*.mcap"))
@@ -418,13 +446,12 @@ def test_bin_replay_node_replays_a_cut_bag_and_warns_once(tmp):
 
 @pytest.mark.parametrize("compression", ["zstd", "lz4"])
 def test_cut_compressed_mcap_bag(tmp, compression):
-    """Compressed chunks (rosbag2's default MCAP writer uses zstd): every frame of the whole chunks
-    before the cut, and of the part of the cut chunk that decompresses."""
+    """Compressed chunks (zstd: BagWriter's default for MCAP, as rosbag2's zstd presets write;
+    lz4): every frame of the whole chunks before the cut, and of the part of the cut chunk that
+    decompresses."""
     from mcap.writer import CompressionType
-    from rosbags.rosbag2 import Reader, StoragePlugin, Writer
-    from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
 
-    bags.write_frames(tmp / "bag", _frames(30, shape=(96, 128)))
+    bags.write_frames(tmp / "bag", _frames(30, shape=(96, 128)), compression="none")
     originals = read_all(tmp / "bag")
     stamps = [f.stamp_ns for f in originals]
     mcap = tmp / "compressed.mcap"
@@ -432,15 +459,7 @@ def test_cut_compressed_mcap_bag(tmp, compression):
         _rewrite_mcap(next((tmp / "bag").glob("*.mcap")), mcap, chunk_size=200_000,
                       compression=CompressionType.LZ4)
     else:
-        writer = Writer(tmp / "zstd", version=9, storage_plugin=StoragePlugin.MCAP)
-        writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
-        writer.open()
-        with Reader(tmp / "bag") as reader:
-            conns = {c.topic: writer.add_connection(c.topic, c.msgtype, typestore=bags._typestore())
-                     for c in reader.connections}
-            for conn, t, raw in reader.messages():
-                writer.write(conns[conn.topic], t, raw)
-        writer.close()
+        bags.write_frames(tmp / "zstd", _frames(30, shape=(96, 128)))  # the default
         mcap = next((tmp / "zstd").glob("*.mcap"))
     data = mcap.read_bytes()
     assert data.find(originals[0].depth.tobytes()[:200]) == -1  # compressed indeed
@@ -473,7 +492,7 @@ def test_split_recording_cut_in_its_last_file(tmp):
     file: the files in split order, the last one up to its cut."""
     frames = _frames(10)
     bags.write_frames(tmp / "a", frames[:5])
-    bags.write_frames(tmp / "b", frames[5:])
+    bags.write_frames(tmp / "b", frames[5:], compression="none")  # its messages found by bytes
     originals = read_all(tmp / "a") + read_all(tmp / "b")
     (tmp / "rec").mkdir()
     next((tmp / "a").glob("*.mcap")).rename(tmp / "rec" / "rec_9.mcap")

@@ -16,7 +16,7 @@ from conftest import BAGS, REPO, run_cli
 
 from inseggan_ros import checkpoint, data, evaluate
 from inseggan_ros.metrics import mean_miou
-from inseggan_ros.modelcard import card_markdown, full_resolution_scores
+from inseggan_ros.modelcard import card_markdown, full_resolution_scores, markdown
 from inseggan_ros.segment import Segmenter
 
 MODELS = sorted(p.parent for p in (REPO / "models").glob("*/card.json"))
@@ -74,7 +74,7 @@ def test_card_matches_checkpoint(folder):
     assert cfg.refine_hypotheses == card["hypotheses"] and cfg.smooth.iters == card["smooth_iters"]
     assert cfg.refine_keep == card.get("keep", 0)
     readme = (folder / "README.md").read_text()
-    assert readme == card_markdown(card), "README.md is the card as the export writes it"
+    assert readme == markdown(card), "README.md is the card as the export writes it"
     assert f"{card['tau']:.3f}" in readme and (folder / "qualitative.png").is_file()
 
 

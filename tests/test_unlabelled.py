@@ -12,6 +12,7 @@ from conftest import BAGS, REPO, run_cli, zbuffer_settings
 
 from inseggan_ros import bags, checkpoint, data, evaluate, selfcheck
 from inseggan_ros.metrics import mean_miou
+from inseggan_ros.modelcard import markdown, sample_bag_scores
 from inseggan_ros.segment import Segmenter
 
 MODEL = REPO / "models" / "cylinder" / "model.pt"
@@ -145,13 +146,29 @@ def test_export_with_a_labels_topic_adds_miou(tmp, small_bags):
     labelled, unlabelled = small_bags
     out = tmp / "labelled_card"
     run_cli("export", "--checkpoint", MODEL, "--bag", labelled, "--labels-topic",
-            "/camera/depth/instance_labels", "--name", "x", "--out", out, check=True)
+            "/camera/depth/instance_labels", "--name", "x", "--out", out,
+            "--sample-bag", SAMPLE_BAG.name, check=True)
     card = json.loads((out / "card.json").read_text())
     methods = card["labelled"]["methods"]
     assert set(methods) == {"inseggan", "kmeans", "felzenszwalb"}
     assert all(0 <= v["miou_all"] <= 1 for v in methods.values())
     assert methods["inseggan"]["miou_all"] > 0.5
-    assert "Against the ground truth" in (out / "README.md").read_text()
+    readme = (out / "README.md").read_text()
+    assert "Against the ground truth" in readme and readme == markdown(card)
+    # a shipped sample bag, scored as the model tests score it again (test_models)
+    b = card["sample_bag"], card["sample_bag_scores"]
+    assert b[0] == SAMPLE_BAG.name and b[1]["frames"] == len(data.load_bag(SAMPLE_BAG)["x"])
+    seg = Segmenter.from_checkpoint(out / "model.pt", device="cpu")
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # as the export measured: another count's rounding can tip a pick
+    try:
+        again = sample_bag_scores(seg, SAMPLE_BAG.name)
+    finally:
+        torch.set_num_threads(threads)
+    full = b[1].pop("full_resolution")
+    assert full == pytest.approx(again.pop("full_resolution"), abs=1e-6)
+    assert b[1] == pytest.approx(again, abs=1e-6)
+    assert f"shipped sample bag `{SAMPLE_BAG.name}`: InSeGAN {b[1]['inseggan']:.3f}" in readme
     # a labels topic the bag does not have: a one-line error, nothing written
     p = run_cli("export", "--checkpoint", MODEL, "--bag", unlabelled, "--labels-topic",
                 "/camera/depth/instance_labels", "--name", "y", "--out", tmp / "y")
