@@ -766,8 +766,7 @@ def cmd_check(args) -> int:
     if args.frames < 1:
         raise ValueError(f"--frames {args.frames} invalid; valid: >= 1")
     torch.set_num_threads(1)  # as the node runs by default
-    model = Path(args.model).expanduser()
-    model = model / "model.pt" if model.is_dir() else resolve_model(str(args.model), "--model")
+    model = resolve_model(str(args.model), "--model")
     seg = Segmenter.from_checkpoint(model, device="cpu")
     seg.inference = settings.resolve(seg.inference, args, seg.stored_settings)
     bag = resolve_bag(str(args.bag), "--bag")

@@ -32,9 +32,12 @@ def _names(folder: Path | None, keep=lambda p: True) -> list[str]:
 
 
 def resolve_model(path: str, what: str = "model_path") -> Path:
-    """'' = the default shipped model; a shipped model's name; or a checkpoint path."""
+    """'' = the default shipped model; a shipped model's name; a model folder (its model.pt);
+    or a checkpoint path."""
     name = path or DEFAULT_MODEL
     p = Path(name).expanduser()
+    if p.is_dir() and (p / "model.pt").is_file():  # models/<name>/, or the loop's out/model
+        return p / "model.pt"
     if p.is_file() or p.is_absolute() or "/" in name or name.endswith(".pt"):
         return p
     shipped = shipped_dir("models")

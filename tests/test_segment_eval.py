@@ -159,6 +159,20 @@ def test_bad_model_files_give_one_clear_error(tmp):
         Segmenter.from_checkpoint(tmp / "other.pt")
 
 
+def test_a_model_is_named_by_shipped_name_folder_or_file(tmp):
+    """`--model` and the node's model_path: a shipped name, a model folder (its model.pt, as
+    `export` and `loop` write them) or a checkpoint file; a folder without one is no model."""
+    from inseggan_ros.paths import resolve_model
+
+    shipped = resolve_model("cylinder")
+    assert shipped.name == "model.pt" and shipped.parent.name == "cylinder"
+    assert resolve_model(str(shipped.parent)) == shipped
+    assert resolve_model(str(shipped)) == shipped
+    (tmp / "empty").mkdir()
+    with pytest.raises(CheckpointError, match="no such model file"):
+        Segmenter.from_checkpoint(resolve_model(str(tmp / "empty")))
+
+
 def test_two_hard_subsets_are_reported():
     """The paper's hard subset (K-Means < 0.6) and the second one (Felzenszwalb < 0.8), each
     averaged over its own frames, and the table shows both."""
