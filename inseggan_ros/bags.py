@@ -485,9 +485,9 @@ class BagWriter:
         w.write(stamp_ns, depth_m, labels=labels, camera_info=info)
 
     `compression`: "zstd" compresses each MCAP chunk (the MCAP format's own chunk compression,
-    which `ros2 bag play`, rosbags and the mcap tools read as they are; depth frames shrink about
-    eight times), "none" writes them as they are; default zstd for MCAP, none for sqlite3, which
-    has no chunks to compress.
+    as rosbag2's MCAP plugin writes it with its zstd presets; depth frames shrink several
+    times), "none" writes them as they are; default zstd for MCAP, none for sqlite3, which has
+    no chunks to compress.
     """
 
     def __init__(self, path, encoding: str = "16UC1", storage: str = "mcap",
