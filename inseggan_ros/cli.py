@@ -406,6 +406,9 @@ def cmd_shape_fit(args) -> int:
               + f" (heights' W1 {best['distance']:.4f}"
               + (f"; IoU with the true part {best['iou']:.3f}" if "iou" in best else "")
               + f"); {args.out / 'match' / 'match.png'}")
+        if m.get("skipped"):  # the grid's variants no template of these discs can be
+            print(f"{len(m['skipped'])} variants of the grid skipped, e.g. "
+                  f"{m['skipped'][0]['why']}")
     s = fit_shape(file, train_x, args.out, replace(cfg, hole=hole), val_x=val_x,
                   progress=not args.quiet, report=report, discs=discs)
     first, last = s["first"] or {}, s["best"] or s["last"] or {}

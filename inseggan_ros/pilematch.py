@@ -211,13 +211,16 @@ def match_head(discs: Discs, user_x: np.ndarray, make: Callable[[Discs, float, P
         raise ValueError(f"holes {cfg.holes} make a ring of one disc; valid: a template of one "
                          f"disc, not {len(discs)}")
 
+    skipped = []  # the grid's variants the template cannot be, each with why
+
     def valid(v: tuple[float, ...]) -> bool:
         try:
             d = head_variant(discs, *v[:5])
             if v[5]:
                 check_ring(d[0], v[5])
-        except ValueError:  # a head too short for its neighbours, offset too far, a ring's
-            return False  # wall too thin
+        except ValueError as e:  # a head too short for its neighbours, offset too far, a
+            skipped.append({**dict(zip(VARIANT_KEYS, v)), "why": str(e)})  # ring's wall too
+            return False  # thin
         return True
 
     coarse = measure("coarse", [v for v in itertools.product(
@@ -235,7 +238,7 @@ def match_head(discs: Discs, user_x: np.ndarray, make: Callable[[Discs, float, P
                        cfg.fine_piles)
         best = min(fine, key=lambda r: r["distance"])
     summary = {"config": config, "discs_before": start,
-               "coarse": coarse, "fine": fine, "best": best,
+               "coarse": coarse, "fine": fine, "best": best, "skipped": skipped,
                "discs": [list(s) for s in head_variant(discs, *_variant(best)[:5])],
                "hole": _variant(best)[5]}
     _plot(coarse, cfg, out / "match.png")
@@ -243,10 +246,12 @@ def match_head(discs: Discs, user_x: np.ndarray, make: Callable[[Discs, float, P
     return summary
 
 
+VARIANT_KEYS = ("length", "radius", "shaft", "offset", "stretch", "hole")
+
+
 def _variant(row: dict) -> tuple[float, float, float, float, float, float]:
     """A measured variant's factors: `head_variant`'s five, then its hole (0: none)."""
-    return (row["length"], row["radius"], row["shaft"], row["offset"], row["stretch"],
-            row.get("hole", 0.0))
+    return (*(row[k] for k in VARIANT_KEYS[:5]), row.get("hole", 0.0))
 
 
 def _plot(rows: list[dict], cfg: PileMatchConfig, path: Path) -> None:

@@ -142,7 +142,14 @@ def test_a_nut_s_piles_choose_a_ring_with_its_hole_over_a_solid_disc(tmp_path):
     s = search(nut, ring, user, x, tmp_path / "match", cfg, progress=False)
     best = s["best"]
     assert (best["hole"], best["length"], best["radius"]) == (0.7, 0.4, 1.1), s["coarse"]
-    assert s["hole"] == 0.7 and len(s["coarse"]) == 8
+    assert s["hole"] == 0.7 and len(s["coarse"]) == 8 and s["skipped"] == []
+    # a hole no ring of these discs can have (its wall thinner than a piece's least extent):
+    # its variants are skipped by name, the others reused from the folder, not simulated again
+    wide = search(nut, ring, user, x, tmp_path / "match", replace(cfg, holes=(0.0, 0.7, 0.99)),
+                  progress=False)
+    assert wide["best"] == {**best, "stage": "coarse"} and len(wide["coarse"]) == 8
+    assert len(wide["skipped"]) == 4 and {v["hole"] for v in wide["skipped"]} == {0.99}
+    assert all("wall thicker than" in v["why"] for v in wide["skipped"])
     _, G, _ = checkpoint.build_models(checkpoint.load(truth), truth)
     pieces = shape.template_pieces(G)
     (x0, x1, r), = s["discs"]
