@@ -404,21 +404,23 @@ def _shipped_segmenter(file: Path, cfg: LoopConfig):
     return seg
 
 
-def _export(finished: Path, data, cfg: LoopConfig, out: Path, piles: dict | None = None
-            ) -> dict:
+def _export(finished: Path, data, cfg: LoopConfig, out: Path, piles: dict | None = None,
+            camera=None) -> dict:
     """Stage 5: the model shipped with `cfg.export_settings` (a training checkpoint carries
     only the bare defaults: no refinement, one starting point, no smoothing); with labelled
     `piles` (the last simulation's validation split; `run` loads them only where
-    `cfg.vote_scales` names scales), the vote's scale chosen on them among those."""
+    `cfg.vote_scales` names scales), the vote's scale chosen on them among those. `camera`:
+    the one the template was learned through (`sim.learned.model_camera` of the loop's
+    model), recorded where the checkpoint lacks it."""
     from .modelcard import export_from_bag, export_from_dataset
 
     inference = _shipped_segmenter(finished, cfg).inference
     if isinstance(data, BagFrames):
         return export_from_bag(finished, data.path, cfg.name, out, data.topic, data.labels_topic,
                                data.held_out, inference=inference, vote_piles=piles,
-                               vote_scales=cfg.vote_scales)
+                               vote_scales=cfg.vote_scales, camera=camera)
     return export_from_dataset(finished, data, cfg.name, out, inference=inference,
-                               vote_piles=piles, vote_scales=cfg.vote_scales)
+                               vote_piles=piles, vote_scales=cfg.vote_scales, camera=camera)
 
 
 def run_self_fit(model, data, out, cfg: LoopConfig, progress: bool = True) -> dict:
@@ -699,6 +701,7 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
     learned first with `train_cfg`."""
     from . import checkpoint
     from .sim.dataset import load_meta
+    from .sim.learned import model_camera
 
     if (model is None) == (train_cfg is None):
         raise ValueError("give a trained model, or a training config to learn the shape with "
@@ -740,7 +743,9 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
     file = _model_file(model).resolve()
     if bag is None:
         _same_view(file, data)
-    view = pile_view(data, checkpoint.load(file))
+    state = checkpoint.load(file)
+    view = pile_view(data, state)
+    camera = model_camera(file, state)  # its template's size: the model folder's card names it
 
     if thickness != "off":
         t0 = time.monotonic()
@@ -795,7 +800,7 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
         from . import data as data_mod
 
         piles = data_mod.load_sim_split(sim, "val", limit=100, **view)
-    card = _export(finished, data, cfg, out / "model", piles)
+    card = _export(finished, data, cfg, out / "model", piles, camera)
     seconds["export"] = round(time.monotonic() - t0, 1)
     stages.update(1)
     stages.close()

@@ -262,7 +262,7 @@ TRAINING_ONLY = ("discriminator", "optimizers", "rng", "format", "distill")
 
 def export_label_free(checkpoint_path, name: str, out_dir, calib: dict, held: dict,
                       source: dict, inference=None, vote_piles: dict | None = None,
-                      vote_scales=None, sample_bag: str | None = None) -> dict:
+                      vote_scales=None, sample_bag: str | None = None, camera=None) -> dict:
     """Ship a model from frames without ground truth (a recording of the user's own part):
     out_dir/model.pt (inference weights, float32, tau calibrated on `calib` without labels,
     the inference settings), card.json, README.md, qualitative.png.
@@ -275,9 +275,13 @@ def export_label_free(checkpoint_path, name: str, out_dir, calib: dict, held: di
     `vote_piles`: labelled frames ({x, fg, labels}: the loop's simulated piles) on which the
     superpixel vote's scale is chosen once tau is known (`vote_scale.choose`, among
     `vote_scales`, default `vote_scale.SCALES`). `sample_bag`: a shipped bag of the part with
-    labels (`bags/`), scored as the model tests score it again (`sample_bag_scores`). Accepts a
-    training checkpoint or an exported model.pt."""
-    from dataclasses import replace
+    labels (`bags/`), scored as the model tests score it again (`sample_bag_scores`).
+    `camera`: the camera the template was learned through (`sim.camera.CameraConfig`), which
+    sizes it in metres (`inseggan simulate --object`, `card-shape`): recorded with the training
+    data where the checkpoint's own record lacks it (a loop started from a data set's model,
+    whose data set a clone does not have). Accepts a training checkpoint or an exported
+    model.pt."""
+    from dataclasses import asdict, replace
 
     import torch
 
@@ -310,11 +314,13 @@ def export_label_free(checkpoint_path, name: str, out_dir, calib: dict, held: di
     keep = {k: v for k, v in state.items() if k not in TRAINING_ONLY}
     keep.update(tau=seg.tau, inference=seg.inference.to_dict(), precision="float32",
                 distill_record=distill_record(state))
+    if camera is not None and not (state.get("data") or {}).get("camera"):
+        keep["data"] = {**(state.get("data") or {}), "camera": asdict(camera)}
     inf = seg.inference
     card = {
         "name": name, "label_free": True, "n_instances": seg.model_cfg.n_instances,
         "model_config": state["model_config"], "train_config": state.get("train_config"),
-        "training_data": state.get("data"), "iterations": state.get("iteration"),
+        "training_data": keep.get("data"), "iterations": state.get("iteration"),
         "wall_minutes": round(state.get("elapsed_seconds", 0) / 60, 1),
         "checkpoint": str(checkpoint_path), "distillation": distill_record(state),
         "hardware": f"{platform.machine()} CPU, {os.cpu_count()} cores (torch threads: 1)",
@@ -349,7 +355,7 @@ def export_from_bag(checkpoint_path, bag, name: str, out_dir, depth_topic: str |
                     labels_topic: str | None = None, held_out: float = 0.2,
                     frames: int | None = 200, inference=None,
                     vote_piles: dict | None = None, vote_scales=None,
-                    sample_bag: str | None = None) -> dict:
+                    sample_bag: str | None = None, camera=None) -> dict:
     """`export_label_free` on a bag: tau from its first frames, the measures on its last
     `held_out` fraction (at most `frames` of each, spread evenly); labels only from
     `labels_topic`, when named."""
@@ -372,13 +378,13 @@ def export_from_bag(checkpoint_path, bag, name: str, out_dir, depth_topic: str |
               "held_out_rule": f"the last {100 * held_out:.0f} % of the bag's frames in time "
                                "order"}
     return export_label_free(checkpoint_path, name, out_dir, calib, held, source, inference,
-                             vote_piles, vote_scales, sample_bag)
+                             vote_piles, vote_scales, sample_bag, camera)
 
 
 def export_from_dataset(checkpoint_path, data_root, name: str, out_dir,
                         frames: int | None = 200, inference=None,
                         vote_piles: dict | None = None, vote_scales=None,
-                        sample_bag: str | None = None) -> dict:
+                        sample_bag: str | None = None, camera=None) -> dict:
     """`export_label_free` on a simulated data set, as if it had no labels: tau from its
     validation split without labels, the measures on its test split (whose labels give the
     mIoU rows)."""
@@ -400,7 +406,7 @@ def export_from_dataset(checkpoint_path, data_root, name: str, out_dir,
               "description": f"simulated data set `{data_root}` (val and test splits)",
               "held_out_rule": "its test split"}
     return export_label_free(checkpoint_path, name, out_dir, calib, held, source, inference,
-                             vote_piles, vote_scales, sample_bag)
+                             vote_piles, vote_scales, sample_bag, camera)
 
 
 def _span(values) -> list[int] | None:
@@ -703,7 +709,7 @@ def add_shape(model_dir, object_name: str | None = None, voxels: int = 30,
                          "no explicit template; valid: 'spheres' or 'convex'")
     voxel = shape.part_voxel(name, voxels)
     # a data set's camera, or the one the loop estimated from a recording
-    camera = card.get("camera") or card.get("training_data", {}).get("camera")
+    camera = card.get("camera") or (card.get("training_data") or {}).get("camera")
     if camera is None:
         raise ValueError(f"{model_dir}: its card records no camera, so the template's size in "
                          "metres is unknown; valid: a card made by `inseggan export` or "

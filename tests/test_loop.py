@@ -16,6 +16,7 @@ from inseggan_ros.loop import AUTO_SIZE_ROUNDS, VOTE_SCALES
 from inseggan_ros.preprocess import PreprocessConfig
 from inseggan_ros.sim.learned import model_camera, template_scale
 from inseggan_ros.metrics import mean_miou, miou_batch
+from inseggan_ros.modelcard import markdown
 from inseggan_ros.segment import labels_from_renders
 
 # a box part's model as training left it, without labels: the wooden_block model shipped before
@@ -253,6 +254,19 @@ def test_the_loop_piles_a_nut_with_its_hole_where_the_grid_asks_for_one(tmp):
     # a recording's card names no part: the true shape to measure against must be given
     bad = run_cli("card-shape", out / "model")
     assert bad.returncode == 2 and "names no part" in bad.stderr, bad.stderr
+    # given, both shapes are measured at the size the recording's estimated camera gives: the
+    # data set's camera, from which the shipped nut's card measured its own rod
+    run_cli("card-shape", out / "model", "--object", "hex_nut", "--voxels", "8",
+            "--piles-template", out / "match" / "best.pt", check=True, timeout=600)
+    card = json.loads((out / "model" / "card.json").read_text())
+    shipped = json.loads((REPO / "models" / "hex_nut" / "card.json").read_text())["shape"]
+    for f in (card["shape"], card["piles_shape"]):
+        assert f["object"] == "hex_nut" and 0 < f["iou"] <= 1
+        assert f["dims_true_mm"] == shipped["dims_true_mm"]
+        assert f["metres_per_unit"] == pytest.approx(shipped["metres_per_unit"], rel=0.05)
+    assert card["piles_shape"]["template"] == str(out / "match" / "best.pt")
+    readme = (out / "model" / "README.md").read_text()
+    assert readme == markdown(card) and "piles_shape.png" in readme
 
 
 def test_the_loop_piles_a_disc_template_matched_to_the_frames_and_keeps_the_rod(tmp):
