@@ -58,15 +58,17 @@ def replayed(tmp_path_factory):
     target: make bench-node). config/quality.yaml's settings give the same messages at about
     a second a frame: test_shipped_parameter_files_set_the_segmenter checks that the file sets
     the node, test_models the segmentation they give on the same bag."""
-    tmp = tmp_path_factory.mktemp("e2e")
-    ns = "/seg_e2e"
-    seg = start_segmenter(ns)
-    # every frame of the bag (the bag loops until all have come round): the same frames the
-    # model card's full-resolution scores were measured on
-    frames = len(bags.read_all(BAGS / "cylinder_sim"))
-    proc, out = probe(tmp, ns, frames, 150)
+    return replay_to_segmenter(tmp_path_factory.mktemp("e2e"), "/seg_e2e", "cylinder_sim", 4.0)
+
+
+def replay_to_segmenter(tmp, ns, bag, rate, *params):
+    """bin_replay (a shipped bag) -> segmenter (`params`) -> probe, until every frame of the bag
+    has been labelled once (the bag loops until all have come round: the same frames a model
+    card's full-resolution scores were measured on) -> what the probe got."""
+    seg = start_segmenter(ns, *params)
+    proc, out = probe(tmp, ns, len(bags.read_all(BAGS / bag)), 150)
     # looped with the bag's own stamps: frames lost while DDS discovery settles come round again
-    replay = start_replay(ns, "source:=bag", "bag_path:=cylinder_sim", "rate:=4.0",
+    replay = start_replay(ns, "source:=bag", f"bag_path:={bag}", f"rate:={rate}",
                           "restamp:=false", "loop:=true")
     try:
         rc, got = finish(proc, out, 150)
@@ -141,20 +143,8 @@ def test_tilted_realsense_recording_is_segmented_end_to_end(tmp):
     from test_models import CPU_TOLERANCE
 
     card = json.loads((REPO / "models" / "hex_nut_tilted" / "card.json").read_text())
-    bag = card["sample_bag"]
-    ns = "/seg_tilted"
-    seg = start_segmenter(ns, "model_path:=hex_nut_tilted")
-    proc, out = probe(tmp, ns, len(bags.read_all(BAGS / bag)), 150)
-    replay = start_replay(ns, "source:=bag", f"bag_path:={bag}", "rate:=2.0", "restamp:=false",
-                          "loop:=true")
-    try:
-        rc, got = finish(proc, out, 150)
-    finally:
-        stop(replay)
-        seg_rc = stop(seg)
-    err = seg.stderr.read()
-    assert seg_rc == 0 and "Traceback" not in err, err
-    assert rc == 0, f"got {len(got['stamp'])} label images\n{err}"
+    got = replay_to_segmenter(tmp, "/seg_tilted", card["sample_bag"], 2.0,
+                              "model_path:=hex_nut_tilted")
     assert all(lab.shape == (480, 848) and lab.max() <= 5 for lab in got["labels"])
     ours, km = _scores(got)
     full = card["sample_bag_scores"]["full_resolution"]
