@@ -58,7 +58,7 @@ def test_write_read_round_trip(tmp, storage, encoding):
 
 
 def test_mcap_chunks_are_compressed_unless_asked_not_to(tmp):
-    """zstd chunks by default for MCAP (depth frames shrink several times; read back
+    """Compressed (zstd) chunks by default for MCAP (depth frames shrink several times; read back
     unchanged), none on request; sqlite3 has no chunks, so zstd there, or an unknown
     compression, is refused by name."""
     frames = _frames(4, shape=(120, 160))

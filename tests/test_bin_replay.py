@@ -135,7 +135,8 @@ def test_a_profile_the_user_set_is_left_alone(tmp):
     (["source:=camera"], "parameter source='camera' invalid; valid: sim, bag"),
     (["rate:=0.0"], "rate=0.0 invalid for source 'sim'"),
     (["source:=bag", "bag_path:=/no/such/bag"], "/no/such/bag: no such bag"),
-    (["source:=bag", "bag_path:=not_shipped"], "shipped bags: bolt_sim, cone_sim, cylinder_sim"),
+    (["source:=bag", "bag_path:=not_shipped"],
+     "shipped bags: bolt_sim, bolt_tilted_realsense, cone_sim"),
     (["source:=bag", "bag_path:=cylinder_sim", "topic:=/nope"],
      "topic '/nope' is not in the bag; topics: /camera/depth/camera_info"),
 ])

@@ -210,7 +210,7 @@ def test_bad_frames_are_counted_and_skipped_and_the_node_keeps_serving(tmp):
 
 @pytest.mark.parametrize("params, message", [
     (["model_path:=/nonexistent/model.pt"], "no such model file"),
-    (["model_path:=no_such_shipped_model"], "shipped models: bolt, cone, cylinder"),
+    (["model_path:=no_such_shipped_model"], "shipped models: bolt, bolt_tilted, cone"),
     (["device:=tpu"], "device='tpu' invalid"),
     (["roi:=[1, 2, 3]"], "roi [1, 2, 3] invalid"),
     (["tau:=3.0"], "parameter tau"),
