@@ -691,7 +691,7 @@ def add_shape(model_dir, object_name: str | None = None, voxels: int = 30,
     measured the same way as card["piles_shape"] and piles_shape.png. -> the shape record."""
     from . import checkpoint as ckpt
     from . import shape
-    from .sim.camera import CameraConfig
+    from .sim.learned import model_camera
     from .sim.objects import OBJECTS
 
     model_dir = Path(model_dir)
@@ -708,8 +708,7 @@ def add_shape(model_dir, object_name: str | None = None, voxels: int = 30,
         raise ValueError(f"{model_dir}: renderer {state['model_config'].get('renderer')!r} has "
                          "no explicit template; valid: 'spheres' or 'convex'")
     voxel = shape.part_voxel(name, voxels)
-    # a data set's camera, or the one the loop estimated from a recording
-    camera = card.get("camera") or (card.get("training_data") or {}).get("camera")
+    camera = model_camera(model_dir, state)
     if camera is None:
         raise ValueError(f"{model_dir}: its card records no camera, so the template's size in "
                          "metres is unknown; valid: a card made by `inseggan export` or "
@@ -717,7 +716,7 @@ def add_shape(model_dir, object_name: str | None = None, voxels: int = 30,
 
     def measure(file: Path, drawing: Path) -> dict:
         st = ckpt.load(file)
-        scale = shape.metres_per_unit(st["preprocess_config"], CameraConfig(**camera),
+        scale = shape.metres_per_unit(st["preprocess_config"], camera,
                                       st["model_config"]["height_gain"])
         G = ckpt.build_models(st, file)[1]
         f = shape.evaluate_generator(G, name, scale, drawing, voxel=voxel)

@@ -55,14 +55,16 @@ def _hull_mesh(points: np.ndarray) -> Mesh:
 
 
 def model_camera(path: Path, state: dict | None = None):
-    """The camera the model was trained with (for its scale): its card's (model folders), else
-    the one its checkpoint records, else its training data set's; None if none is known."""
+    """The camera the model was trained with (for its scale): its card's (model folders: a data
+    set's camera, or the one the loop estimated from a recording), else the one its checkpoint
+    records, else its training data set's; None if none is known."""
     import json
 
     from .camera import CameraConfig
 
     card = path.parent / "card.json" if path.suffix == ".pt" else path / "card.json"
-    cam = json.loads(card.read_text()).get("camera") if card.is_file() else None
+    card = json.loads(card.read_text()) if card.is_file() else {}
+    cam = card.get("camera") or (card.get("training_data") or {}).get("camera")
     data = (state or {}).get("data") or {}
     if cam is None:
         cam = data.get("camera")
