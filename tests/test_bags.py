@@ -120,7 +120,7 @@ def test_shipped_sample_bags_are_small_and_readable():
     names = sorted(p.name for p in BAGS.iterdir() if p.is_dir())
     assert len(names) >= 3
     total = sum(f.stat().st_size for f in BAGS.rglob("*") if f.is_file())
-    assert total < 8e6  # zstd-compressed chunks: the 848 x 480 bags about 1 MB each
+    assert total < 12e6  # zstd-compressed chunks: the 848 x 480 bags about 1-1.3 MB each
     encodings = set()
     for name in names:
         frames = read_all(BAGS / name)
