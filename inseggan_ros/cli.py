@@ -508,6 +508,18 @@ def cmd_loop(args) -> int:
     elif args.match_pieces != 2 or args.match_walls != 8 or args.match_seed != 0:
         raise ValueError("--match-pieces, --match-walls and --match-seed shape --match-piles' "
                          "discs; valid: with --match-piles")
+    if args.convex_pieces:
+        from dataclasses import replace
+
+        from .shapefit import ShapeFitConfig
+
+        cfg = replace(cfg, convex=ShapeFitConfig(pieces=args.convex_pieces,
+                                                 walls=args.convex_walls,
+                                                 iterations=args.convex_iterations,
+                                                 seed=args.seed))
+    elif args.convex_walls != 4 or args.convex_iterations != 1500:
+        raise ValueError("--convex-walls and --convex-iterations shape --convex-pieces' "
+                         "template; valid: with --convex-pieces")
     train_cfg = None
     if args.model is None:
         from .train import get_config
@@ -1180,6 +1192,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="--match-piles: side planes of each disc (8)")
     p.add_argument("--match-seed", type=int, default=0,
                    help="--match-piles: of the variants' piles (0)")
+    p.add_argument("--convex-pieces", type=int, default=0,
+                   help="with a rod: the rod becomes a convex template of this many pieces (a "
+                        "box, a prism: flat faces, sharp edges), fitted to the user's frames by "
+                        "reconstruction as `shape-fit` fits it (OUT/convex), and the piles are "
+                        "of it; no size stage then (0, the default: the rod's own piles). "
+                        "Tilted wooden blocks: docs/experiments.md, 2026-12-04")
+    p.add_argument("--convex-walls", type=int, default=4,
+                   help="--convex-pieces: side planes of each piece (4: a box)")
+    p.add_argument("--convex-iterations", type=int, default=1500,
+                   help="--convex-pieces: iterations of the fit (1500)")
     p.add_argument("--name", default="model", help="the exported model's name")
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=cmd_loop)

@@ -13,6 +13,8 @@ unlabelled frames), so one command goes from frames to a shipped model:
     inseggan loop --bag my_recording --instances 6 --out runs/my_part_loop --train-minutes 40
     inseggan loop --bag my_bolts --instances 5 --out runs/my_bolts_loop --match-piles \
         --iterations 0 --centre-iterations 3000 ...   # a head on a shaft: see stage 0c
+    inseggan loop --bag my_blocks --instances 5 --out runs/my_blocks_loop --convex-pieces 1 \
+        --iterations 0 --centre-iterations 3000 ...   # a box: see stage 0d
 
 The user's frames are a simulated data set (`--data`: its meta.json names the camera, noise, bin
 and instance count) or a recording (`--bag`, `BagFrames`: the camera and bin are estimated from
@@ -40,6 +42,11 @@ resumes from its last checkpoint; the export writes its folder atomically):
      that part; the model stays the rod, whose encoder and what follows learn from them (a
      CPU's rod of tilted bolts is two thirds of the bolt's length: docs/experiments.md,
      2026-12-02);
+  0d. convex (only with `convex`, for a rod; then no size stage or rounds): the rod becomes a
+     convex template (a box, a prism: flat faces, sharp edges), fitted with the rod's encoder
+     and pose decoder to reconstruct the user's training frames and kept where it explains
+     held-out frames best (`shapefit.fit_shape`, as `shape-fit` runs it) -> out/convex/best.pt,
+     the model from then on (the wooden block: docs/experiments.md, 2026-12-04);
   1. simulate: `--scenes` labelled scenes of the learned part, with the camera, noise, bin and
      number of instances of the user's data set (its meta.json) or bag;
   2. encoder (not with `iterations` 0: the model's own encoder): the model's encoder fitted to
@@ -84,6 +91,7 @@ from .vote_scale import SCALES as VOTE_SCALES
 if TYPE_CHECKING:
     from .pilematch import PileMatchConfig
     from .preprocess import PreprocessConfig
+    from .shapefit import ShapeFitConfig
     from .sim.scene import SceneConfig
 
 
@@ -139,6 +147,10 @@ class LoopConfig:
     # (`pilematch`; its `workers` are the loop's)
     match_pieces: int = 2  # the discs of that template (2: a head on a shaft; 3: a flange)
     match_walls: int = 8  # the side planes of each disc
+    convex: "ShapeFitConfig | None" = None  # stage 0d's fit (None: no such stage): the rod
+    # becomes a convex template fitted to the user's frames by reconstruction (`shapefit`,
+    # `shape-fit`'s default start: a box), and the piles are of it: flat faces and sharp edges
+    # (the wooden block: docs/experiments.md, 2026-11-26 night and 2026-12-04)
 
     def __post_init__(self):
         if self.self_frames < 0:
@@ -183,6 +195,9 @@ class LoopConfig:
 
             ShapeFitConfig(pieces=self.match_pieces, walls=self.match_walls, iterations=0,
                            start="discs")  # raises with what is wrong
+        if self.convex is not None and self.match_piles is not None:
+            raise ValueError("convex and match_piles both set: the piles are of one template, "
+                             "the fitted convex one or the matched discs; valid: at most one")
         if not 0 < self.lr < 1:
             raise ValueError(f"lr {self.lr!r} invalid; valid: in (0, 1)")
         if not self.user_weight >= 0:
@@ -536,6 +551,12 @@ def size_plan(cfg: LoopConfig, learns: bool, renderer: str) -> tuple[str, int]:
     that is not a rod, or for `size_keep_length` where the thickness rule is off, raises,
     before any stage spends its time."""
     rod = renderer == "spheres"
+    if cfg.convex is not None:
+        if not rod:
+            raise ValueError(f"--convex-pieces fits a convex template from a rod of spheres; "
+                             f"the model's template is {renderer!r} (valid: a rod model, or "
+                             "without --convex-pieces)")
+        rod = False  # what is sized is the fitted template, not the rod
     if cfg.match_piles is not None:
         if not rod:
             raise ValueError(f"--match-piles cuts a rod of spheres into discs; the model's "
@@ -667,6 +688,24 @@ def match_stage(file: Path, data, out: Path, cfg: LoopConfig, progress: bool = T
                           progress=progress, discs=m["discs"])["model"])
 
 
+def convex_stage(file: Path, data, out: Path, cfg: LoopConfig, progress: bool = True) -> Path:
+    """Stage 0d: the rod of `file` becomes a convex template (`cfg.convex`: its pieces and
+    walls), fitted with the rod's encoder and pose decoder to reconstruct the user's training
+    frames and kept where it reconstructs held-out frames best, as `shape-fit` does
+    (`shapefit.fit_shape`; no label read) -> out/best.pt. Resumes from out/last.pt."""
+    from . import checkpoint
+    from .preprocess import PreprocessConfig
+    from .shapefit import fit_shape, hold_out
+
+    prep = PreprocessConfig.from_dict(checkpoint.load(file)["preprocess_config"])
+    if isinstance(data, BagFrames):  # the frames `shape-fit --bag` fits and validates on
+        x, val = hold_out(data.frames(prep)[0]["x"], cfg.convex)
+    else:
+        x = _user_frames(data, prep, "train", cfg.convex.frames, progress)["x"]
+        val = _user_frames(data, prep, "val", cfg.convex.val_frames)["x"]
+    return Path(fit_shape(file, x, out, cfg.convex, val_x=val, progress=progress)["model"])
+
+
 def scale_check(file: Path, data, out: Path, cfg: LoopConfig) -> dict:
     """Stage 2b: the scale of the rod of `file`, at the settings it will ship with, that
     explains the user's frames best (`sizing.choose_scale`: tau calibrated on some of them,
@@ -731,6 +770,7 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
     seconds: dict[str, float] = {}
     stages = tqdm(total=(2 if model is not None else 3) + bool(cfg.iterations)
                   + bool(cfg.head_iterations) + (cfg.match_piles is not None)
+                  + (cfg.convex is not None)
                   + bool(cfg.self_frames) + bool(cfg.centre_iterations)
                   + (thickness != "off") + size_rounds,
                   desc="loop", unit="stage", disable=not progress,
@@ -747,6 +787,11 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
     view = pile_view(data, state)
     camera = model_camera(file, state)  # its template's size: the model folder's card names it
 
+    if cfg.convex is not None:
+        t0 = time.monotonic()
+        file = convex_stage(file, data, out / "convex", cfg, progress)
+        seconds["convex"] = round(time.monotonic() - t0, 1)
+        stages.update(1)
     if thickness != "off":
         t0 = time.monotonic()
         file = size_stage(file, data, out / "size", cfg, thickness == "if_elongated")

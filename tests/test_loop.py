@@ -323,3 +323,52 @@ def test_the_loop_piles_a_disc_template_matched_to_the_frames_and_keeps_the_rod(
         bad = run_cli(*base, *extra, "--out", tmp / "bad")
         assert bad.returncode == 2 and said in bad.stderr, (extra, bad.stderr)
         assert not (tmp / "bad").exists()
+
+
+def test_the_loop_fits_a_convex_template_from_the_rod_and_piles_and_ships_it(tmp):
+    """`loop --convex-pieces 1` (stage `convex`, the tilted blocks' recipe in one command): the
+    rod becomes a box fitted to the recording's frames by reconstruction (`shapefit`,
+    tests/test_shapefit.py), the piles are of that box, and the model shipped is the box model
+    with the piles' centre votes; no size stage runs on it. Started again, nothing is redone."""
+    out = tmp / "loop"
+    args = ["loop", "--model", MODEL, "--bag", REPO / "bags" / "wooden_block_realsense",
+            "--instances", "4", "--noise", "realsense", "--out", out, "--convex-pieces", "1",
+            "--convex-iterations", "6", "--scenes", "12", "--val-scenes", "4", "--iterations",
+            "0", "--centre-iterations", "8", "--workers", "2", "--quiet"]
+    p = run_cli(*args, check=True, timeout=900)
+    assert "no encoder stage" in p.stdout, p.stdout
+    summary = json.loads((out / "summary.json").read_text())
+    assert list(summary["seconds"]) == ["convex", "simulate", "centres", "export"]
+    assert summary["sizing"] == {"by_thickness": "off", "rounds": 0}
+    box = out / "convex" / "best.pt"
+    fit = json.loads((out / "convex" / "summary.json").read_text())
+    assert fit["config"]["pieces"] == 1 and fit["config"]["iterations"] == 6
+    meta = json.loads((out / "sim" / "meta.json").read_text())
+    assert meta["scene"]["object"] == str(box)  # the piles are of the fitted box
+    shipped = checkpoint.load(out / "model" / "model.pt")
+    fitted, rod = checkpoint.load(box), checkpoint.load(MODEL)
+    assert rod["model_config"]["renderer"] == "spheres"
+    assert shipped["model_config"]["renderer"] == "convex"
+    assert (shipped["model_config"]["pieces"], shipped["model_config"]["walls"]) == (1, 4)
+    for part_of in ("generator", "encoder"):  # the fit's own, not the rod's
+        assert all(torch.equal(v, shipped[part_of][k]) for k, v in fitted[part_of].items())
+    assert shipped["inference"]["centre_votes"] == "on"
+    assert shipped["centre_net"]["sim"] == str(out / "sim")
+    kept = (box, out / "sim" / "meta.json", out / "centres" / "model.pt")
+    stamps = {f: f.stat().st_mtime_ns for f in kept}
+    run_cli(*args, check=True, timeout=600)
+    assert {f: f.stat().st_mtime_ns for f in stamps} == stamps
+    # refused before any stage: a template that is not a rod, both pile templates at once,
+    # the box's walls without --convex-pieces, no pieces
+    base = ["loop", "--bag", REPO / "bags" / "wooden_block_realsense", "--instances", "4",
+            "--iterations", "0", "--centre-iterations", "8", "--quiet"]
+    for extra, said in (
+            (["--model", REPO / "models" / "wooden_block", "--convex-pieces", "1"],
+             "fits a convex template from a rod"),
+            (["--model", MODEL, "--convex-pieces", "1", "--match-piles"],
+             "valid: at most one"),
+            (["--model", MODEL, "--convex-walls", "6"], "valid: with --convex-pieces"),
+            (["--model", MODEL, "--convex-pieces", "-1"], "pieces -1 invalid")):
+        bad = run_cli(*base, *extra, "--out", tmp / "bad")
+        assert bad.returncode == 2 and said in bad.stderr, (extra, bad.stderr)
+        assert not (tmp / "bad").exists()
