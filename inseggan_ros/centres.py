@@ -399,8 +399,13 @@ def piles_part(sim) -> str | None:
                     f"width (6 ring sectors), {how}, from `{obj}`")
         return (f"the learned rod's profile as {cfg.get('pieces')} flat-ended discs, {how}, "
                 f"from `{obj}`")
-    return (f"the learned template of `{obj}`, {cfg.get('pieces')} convex pieces of "
-            f"{cfg.get('walls')} walls")
+    pieces = cfg.get("pieces")
+    what = (f"{pieces} convex piece{'s' if pieces != 1 else ''} of {cfg.get('walls')} walls")
+    if fit:  # `shape-fit` from a rod (`loop --convex-pieces`)
+        return (f"the learned rod fitted by reconstruction as {what} (best of "
+                f"{fit['config']['iterations']} iterations, at {fit['iteration']}), from `{obj}`")
+    return f"the learned template of `{obj}`, {what}"
+
 
 
 def _self_labelled(model, seg, data, out: Path, frames: int | None, held_out: int,
