@@ -407,7 +407,6 @@ def piles_part(sim) -> str | None:
     return f"the learned template of `{obj}`, {what}"
 
 
-
 def _self_labelled(model, seg, data, out: Path, frames: int | None, held_out: int,
                    workers: int, progress: bool, given: dict | None = None,
                    teacher_votes: bool = False, teacher_settings: str = "own") -> dict:
