@@ -314,6 +314,9 @@ def export_label_free(checkpoint_path, name: str, out_dir, calib: dict, held: di
     keep = {k: v for k, v in state.items() if k not in TRAINING_ONLY}
     keep.update(tau=seg.tau, inference=seg.inference.to_dict(), precision="float32",
                 distill_record=distill_record(state))
+    fit = shape_fit_record(state)
+    if fit:  # its account, without the optimiser's state (twice the model's own size)
+        keep["shape_fit"] = fit
     if camera is not None and not (state.get("data") or {}).get("camera"):
         keep["data"] = {**(state.get("data") or {}), "camera": asdict(camera)}
     inf = seg.inference
@@ -337,7 +340,7 @@ def export_label_free(checkpoint_path, name: str, out_dir, calib: dict, held: di
         "centre_precision": seg.resolve_precision(inf.centre_precision),
         "precision": "float32",  # no labels to show that float16 weights change nothing
         "measures": measures, "labelled": labelled, "vote_scale": vote,
-        "centre_votes": centres_record(state),
+        "shape_fit": fit, "centre_votes": centres_record(state),
         "sample_bag": sample_bag, "sample_bag_scores": bag_scores,
     }
 

@@ -354,6 +354,10 @@ def test_the_loop_fits_a_convex_template_from_the_rod_and_piles_and_ships_it(tmp
         assert all(torch.equal(v, shipped[part_of][k]) for k, v in fitted[part_of].items())
     assert shipped["inference"]["centre_votes"] == "on"
     assert shipped["centre_net"]["sim"] == str(out / "sim")
+    # the fit's account ships, its optimiser's state (twice the model's size) does not
+    assert "optimizer" not in shipped["shape_fit"] and shipped["shape_fit"]["iterations"] == 6
+    card = json.loads((out / "model" / "card.json").read_text())
+    assert card["shape_fit"]["kept"] == fitted["shape_fit"]["iteration"]
     kept = (box, out / "sim" / "meta.json", out / "centres" / "model.pt")
     stamps = {f: f.stat().st_mtime_ns for f in kept}
     run_cli(*args, check=True, timeout=600)
