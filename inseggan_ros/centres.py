@@ -390,13 +390,16 @@ def piles_part(sim) -> str | None:
         return f"the learned rod of `{obj}`"
     if fit and fit["config"].get("start") == "discs":
         how = f"fitted {fit['iteration']} iterations" if fit["iteration"] else "not fitted"
-        hole = fit["config"].get("hole", 0.0)
+        hole, taper = fit["config"].get("hole", 0.0), fit["config"].get("taper", 1.0)
         if fit.get("discs"):  # `shape-fit --match-piles`
-            how = ("sized by simulated piles, " if hole else
+            how = ("sized by simulated piles, " if hole or taper != 1 else
                    "the widest sized by simulated piles, ") + how
         if hole:  # `--pile-holes`
             return (f"the learned rod's profile as a hexagonal nut with a hole {hole:g} of its "
                     f"width (6 ring sectors), {how}, from `{obj}`")
+        if taper != 1:  # `--pile-tapers`
+            return (f"the learned rod's profile as a disc of {cfg.get('walls')} walls tapering "
+                    f"to {taper:g} of its radius (a frustum), {how}, from `{obj}`")
         return (f"the learned rod's profile as {cfg.get('pieces')} flat-ended discs, {how}, "
                 f"from `{obj}`")
     pieces = cfg.get("pieces")

@@ -389,27 +389,28 @@ def cmd_shape_fit(args) -> int:
         val_x = data_mod.load_sim_split(frames, "val", limit=cfg.val_frames)["x"]
         report = _shape_report(file, frames)
     t0 = time.perf_counter()
-    discs, hole = None, 0.0
+    discs, hole, taper = None, 0.0, 1.0
     if args.match_piles:
         from .pilematch import PileMatchConfig, search
 
         m = search(file, cfg, frames, train_x, args.out / "match",
                    PileMatchConfig(seed=args.seed, workers=args.workers, **grid),
                    progress=not args.quiet, report=report)
-        discs, best, hole = m["discs"], m["best"], m.get("hole", 0.0)
+        discs, best, hole, taper = m["discs"], m["best"], m.get("hole", 0.0), m.get("taper", 1.0)
         print(f"head matched by {len(m['coarse']) + len(m['fine'])} variants' piles: length x"
               f"{best['length']:g}, radius x{best['radius']:g}"
               + (f", shaft x{best['shaft']:g}" if best.get("shaft", 1) != 1 else "")
               + (f", offset {best['offset']:g}" if best.get("offset") else "")
               + (f", stretched x{best['stretch']:g}" if best.get("stretch", 1) != 1 else "")
               + (f", a hole x{hole:g} as wide" if hole else "")
+              + (f", tapering to x{taper:g}" if taper != 1 else "")
               + f" (heights' W1 {best['distance']:.4f}"
               + (f"; IoU with the true part {best['iou']:.3f}" if "iou" in best else "")
               + f"); {args.out / 'match' / 'match.png'}")
         if m.get("skipped"):  # the grid's variants no template of these discs can be
             print(f"{len(m['skipped'])} variants of the grid skipped, e.g. "
                   f"{m['skipped'][0]['why']}")
-    s = fit_shape(file, train_x, args.out, replace(cfg, hole=hole), val_x=val_x,
+    s = fit_shape(file, train_x, args.out, replace(cfg, hole=hole, taper=taper), val_x=val_x,
                   progress=not args.quiet, report=report, discs=discs)
     first, last = s["first"] or {}, s["best"] or s["last"] or {}
     line = (f"shape fitted in {(time.perf_counter() - t0) / 60:.1f} min, {s['iterations']} "
@@ -444,6 +445,10 @@ def _pile_grid_args(p) -> None:
                    help="--match-piles: one disc (--match-pieces 1, --match-walls 12) as a "
                         "hexagonal nut whose hole is these fractions of its width (0: a solid "
                         "disc; e.g. 0,0.5,0.65)")
+    p.add_argument("--pile-tapers", type=_numbers,
+                   help="--match-piles: one disc (--match-pieces 1) as a frustum whose far "
+                        "end's radius is these fractions of its radius (1: a straight disc; "
+                        "a cone, a stopper: e.g. 0.1,0.4,0.7,1)")
     p.add_argument("--coarse-piles", type=int,
                    help="--match-piles: piles of each variant of the coarse grid (200)")
     p.add_argument("--fine-piles", type=int,
@@ -456,12 +461,13 @@ def _pile_grid(args) -> dict:
     --match-piles."""
     grid = {"lengths": args.pile_lengths, "radii": args.pile_radii, "shafts": args.pile_shafts,
             "offsets": args.pile_offsets, "stretches": args.pile_stretches,
-            "holes": args.pile_holes,
+            "holes": args.pile_holes, "tapers": args.pile_tapers,
             "piles": args.coarse_piles, "fine_piles": args.fine_piles}
     grid = {k: v for k, v in grid.items() if v is not None}
     if grid and not args.match_piles:
         raise ValueError("--pile-lengths, --pile-radii, --pile-shafts, --pile-offsets, "
-                         "--pile-stretches, --pile-holes, --coarse-piles and --fine-piles are "
+                         "--pile-stretches, --pile-holes, --pile-tapers, --coarse-piles and "
+                         "--fine-piles are "
                          "--match-piles' grid; valid: with --match-piles")
     return grid
 
@@ -547,6 +553,7 @@ def cmd_loop(args) -> int:
               f"head length x{best['length']:g}, radius x{best['radius']:g}, shaft "
               f"x{best['shaft']:g}, stretched x{best['stretch']:g}"
               + (f", a nut with a hole x{best['hole']:g} as wide" if best.get("hole") else "")
+              + (f", tapering to x{best['taper']:g}" if best.get("taper", 1) != 1 else "")
               + f" (heights' W1 {best['distance']:.4f}); {summary['match']['part']}")
     if "not_by_thickness" in summary["sizing"]:
         print(f"rod not resized to the frames' thickness: "

@@ -194,7 +194,8 @@ class LoopConfig:
             from .shapefit import ShapeFitConfig
 
             ShapeFitConfig(pieces=self.match_pieces, walls=self.match_walls, iterations=0,
-                           start="discs")  # raises with what is wrong
+                           start="discs", taper=min(self.match_piles.tapers))  # raises with
+            # what is wrong (a taper of more than one disc)
         if self.convex is not None and self.match_piles is not None:
             raise ValueError("convex and match_piles both set: the piles are of one template, "
                              "the fitted convex one or the matched discs; valid: at most one")
@@ -684,8 +685,9 @@ def match_stage(file: Path, data, out: Path, cfg: LoopConfig, progress: bool = T
         val = _user_frames(data, prep, "val", shape_cfg.val_frames)["x"]
     m = search(file, shape_cfg, data, x, out / "search",
                replace(cfg.match_piles, workers=cfg.workers), progress)
-    return Path(fit_shape(file, x, out, replace(shape_cfg, hole=m.get("hole", 0.0)), val_x=val,
-                          progress=progress, discs=m["discs"])["model"])
+    return Path(fit_shape(file, x, out, replace(shape_cfg, hole=m.get("hole", 0.0),
+                                                taper=m.get("taper", 1.0)),
+                          val_x=val, progress=progress, discs=m["discs"])["model"])
 
 
 def convex_stage(file: Path, data, out: Path, cfg: LoopConfig, progress: bool = True) -> Path:

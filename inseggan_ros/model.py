@@ -467,6 +467,22 @@ def check_ring(disc, hole: float) -> None:
                          f"{2 * CONVEX_MIN_EXTENT:g}")
 
 
+def taper_slope(disc, taper: float) -> float:
+    """-> how far the walls of the disc (x0, x1, r) lean in per unit of its length when its far
+    end's radius is `taper` x r (`ConvexGenerator.init_discs`); raises ValueError unless the
+    tapered disc can be built: taper in (0, 1], the lean within what a tilt can give
+    (CONVEX_MAX_TILT), the narrow end's radius above CONVEX_MIN_EXTENT."""
+    x0, x1, r = (float(v) for v in disc)
+    slope = r * (1 - taper) / (x1 - x0) if x1 > x0 else math.inf
+    if (not 0 < taper <= 1 or x1 - x0 <= 2 * CONVEX_MIN_EXTENT
+            or taper * r <= CONVEX_MIN_EXTENT or slope >= 0.95 * CONVEX_MAX_TILT):
+        raise ValueError(f"taper {taper:g} of disc {tuple(disc)} invalid; valid: a taper in "
+                         f"(0, 1] leaving the narrow end's radius above {CONVEX_MIN_EXTENT:g} "
+                         f"and the walls leaning less than {0.95 * CONVEX_MAX_TILT:g} per unit "
+                         "of length (a longer or narrower disc)")
+    return slope
+
+
 def _softplus_inverse(y: torch.Tensor) -> torch.Tensor:
     return y + torch.log(-torch.expm1(-y))
 
@@ -528,17 +544,28 @@ class ConvexGenerator(TemplateGenerator):
         self.extent.copy_(_softplus_inverse((support - CONVEX_MIN_EXTENT + noise).clamp_min(1e-3)))
 
     @torch.no_grad()
-    def init_discs(self, segments, axis_height: float) -> None:
+    def init_discs(self, segments, axis_height: float, taper: float = 1.0) -> None:
         """Piece k: a right prism about the template's x axis (its `walls` around that axis),
         spanning x0_k..x1_k with its walls at distance r_k from the axis, the axis at
         `axis_height`; `segments`: K (x0, x1, r), in order along the axis (a stack of discs:
         a solid of revolution with flat steps, such as a head on a shaft or a flange). Each piece
         also reaches back to the previous piece's centre (`halfspaces`: one connected body),
         unseen inside the previous piece where that one is the wider (`shapefit.piece_order`
-        orders them so where it can: a flange first)."""
+        orders them so where it can: a flange first).
+
+        `taper` below 1 (one piece only): the walls lean in along the axis, r at x0 and
+        `taper` x r at x1, a pyramid's frustum (a cone's, a stopper's): each wall's normal
+        tilted along the axis by the slope s (`taper_slope`), at distance (r + taper r) / 2 /
+        sqrt(1 + s^2) from the piece's centre. Why: the learned rod is a capsule, and piles of
+        it teach the centre votes a part without the cone's point (docs/experiments.md,
+        2026-12-06)."""
         K, P = self.extent.shape
         if len(segments) != K:
             raise ValueError(f"{len(segments)} segments for a template of {K} pieces; valid: {K}")
+        if taper != 1 and K != 1:
+            raise ValueError(f"taper {taper:g} for a template of {K} pieces; valid: 1 (no taper) "
+                             "or a template of one piece")
+        slope = taper_slope(segments[0], taper) if taper != 1 else 0.0
         dev = self.extent.device
         seg = torch.tensor([[float(v) for v in s] for s in segments], device=dev)
         x0, x1, r = seg.unbind(1)
@@ -549,10 +576,14 @@ class ConvexGenerator(TemplateGenerator):
                                        torch.full_like(r, float(axis_height))], 1))
         self.orientation.copy_(torch.tensor([0.0, math.pi / 2, 0.0], device=dev).expand(K, 3))
         self.tilt.zero_()
+        if slope:  # the walls' normals lean towards +z of the piece, +x once turned
+            u = slope / CONVEX_MAX_TILT  # `_normals_reach`: base + CONVEX_MAX_TILT t / |(1, t)|
+            self.tilt[:, 2:, 2] = u / math.sqrt(1 - u * u)
+            r = r * (1 + taper) / 2 / math.sqrt(1 + slope * slope)
         # the support wanted: the caps (top, bottom: along +-x once turned) at the segment's
         # ends, the walls at r; less what `halfspaces` adds by itself
         support = torch.cat([((x1 - x0) / 2)[:, None].expand(K, 2), r[:, None].expand(K, P - 2)], 1)
-        _, reach = self._normals_reach()  # with the tilts zeroed above
+        _, reach = self._normals_reach()  # with the tilts set above
         self.extent.copy_(_softplus_inverse((support - reach - CONVEX_MIN_EXTENT).clamp_min(1e-3)))
 
     @torch.no_grad()

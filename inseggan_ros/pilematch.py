@@ -30,6 +30,12 @@ to Felzenszwalb on tilted nuts touching at one height (docs/experiments.md, 2026
 (`ConvexGenerator.init_ring`), its hole's faces at that fraction of its apothem, and the grid
 runs over its thickness (`lengths`), width (`radii`) and hole.
 
+A cone or a stopper tapers: its learned rod is a capsule of about the part's width, and piles
+of it taught the tilted cones' centre votes 0.06 less on their K-Means-hard frames than piles of
+the true cone (docs/experiments.md, 2026-12-03, evening). With `tapers` below 1 the one disc
+is built as a pyramid's frustum (`ConvexGenerator.init_discs`), its far end's radius that
+fraction of its radius, and the grid runs over its length, width and taper.
+
     inseggan shape-fit --model models/bolt --data data/bolt --out runs/bolt_head \
         --start discs --pieces 2 --walls 8 --iterations 0 --match-piles
     inseggan shape-fit --model models/pin_connector --data data/pin_connector \
@@ -39,6 +45,9 @@ runs over its thickness (`lengths`), width (`radii`) and hole.
     inseggan shape-fit --model models/hex_nut --data data/hex_nut --out runs/nut_ring \
         --start discs --pieces 1 --walls 12 --iterations 0 --match-piles \
         --pile-lengths 0.35,0.42,0.5 --pile-radii 1,1.1,1.2 --pile-holes 0.5,0.65
+    inseggan shape-fit --model models/cone --data data/cone --out runs/cone_taper \
+        --start discs --pieces 1 --walls 8 --iterations 0 --match-piles \
+        --pile-lengths 0.7,0.85,1 --pile-radii 1,1.15,1.3 --pile-tapers 0.1,0.4,0.7,1
 """
 from __future__ import annotations
 
@@ -53,7 +62,7 @@ from scipy.stats import wasserstein_distance
 from tqdm import tqdm
 
 from .evaluate import write_json
-from .model import CONVEX_MIN_EXTENT, check_ring
+from .model import CONVEX_MIN_EXTENT, check_ring, taper_slope
 
 Discs = list[tuple[float, float, float]]
 
@@ -67,6 +76,8 @@ class PileMatchConfig:
     stretches: tuple[float, ...] = (1.0,)  # the whole template's length, x its own (radii kept)
     holes: tuple[float, ...] = (0.0,)  # above 0: the one disc as a hexagonal nut with a hole
     # of this fraction of its apothem (`ConvexGenerator.init_ring`); 0: a solid disc
+    tapers: tuple[float, ...] = (1.0,)  # below 1: the one disc as a frustum whose far end's
+    # radius is this fraction of its radius (`ConvexGenerator.init_discs`); 1: a straight disc
     piles: int = 200  # simulated piles of each variant of the coarse grid
     fine_piles: int = 600  # of the fine grid: half the coarse steps about its best, 3 x 3
     # (0: no fine grid)
@@ -85,6 +96,14 @@ class PileMatchConfig:
                 or not all(0 <= h < 1 for h in self.holes)):
             raise ValueError(f"holes {self.holes!r} invalid; valid: one or more increasing "
                              "fractions in [0, 1) of the disc's apothem (0: no hole)")
+        if (not self.tapers or list(self.tapers) != sorted(set(self.tapers))
+                or not all(0 < t <= 1 for t in self.tapers)):
+            raise ValueError(f"tapers {self.tapers!r} invalid; valid: one or more increasing "
+                             "fractions in (0, 1] of the disc's radius at its far end (1: no "
+                             "taper)")
+        if any(self.holes) and any(t != 1 for t in self.tapers):
+            raise ValueError(f"holes {self.holes!r} and tapers {self.tapers!r} both set; valid: "
+                             "a ring or a frustum, not both")
         if not self.offsets or list(self.offsets) != sorted(set(self.offsets)):
             raise ValueError(f"offsets {self.offsets!r} invalid; valid: one or more increasing "
                              "fractions of the template's length")
@@ -157,7 +176,8 @@ def match_head(discs: Discs, user_x: np.ndarray, make: Callable[[Discs, float, P
     """The head of `discs` sized by pile statistics -> summary (also out/summary.json): every
     variant measured, the discs kept ("discs") and their hole ("hole", 0: none). `user_x`: the
     user's frames (N, 1, H, W); `make(discs, hole, file)` writes a model with those discs to
-    `file` (with `hole` above 0 the one disc as a ring, `cfg.holes`); `piles(model_file,
+    `file` (with `hole` above 0 the one disc as a ring, `cfg.holes`; `taper`, a keyword, below
+    1: as a frustum, `cfg.tapers`); `piles(model_file,
     folder, count, seed)` simulates `count` piles of it into `folder` and returns their frames
     as the user's are cut. Each variant's result is kept in out/variants.jsonl as it is
     measured, so a killed search resumes where it stopped (and one with other grids reuses the
@@ -181,7 +201,7 @@ def match_head(discs: Discs, user_x: np.ndarray, make: Callable[[Discs, float, P
     done = {}  # a variant measured with the same piles and user frames is not measured again
     if log.is_file():
         for line in log.read_text().splitlines():
-            row = {"shaft": 1.0, "offset": 0.0, "stretch": 1.0, "hole": 0.0,
+            row = {"shaft": 1.0, "offset": 0.0, "stretch": 1.0, "hole": 0.0, "taper": 1.0,
                    **json.loads(line)}
             done[(*_variant(row), row["piles"], row["seed"], row["frames"])] = row
 
@@ -190,14 +210,16 @@ def match_head(discs: Discs, user_x: np.ndarray, make: Callable[[Discs, float, P
         for v in tqdm(grid, desc=f"piles ({stage})", unit="variant", disable=not progress):
             key = (*v, count, cfg.seed, len(user))
             if key not in done:
-                a, b, c, o, e, h = v
+                a, b, c, o, e, h, t = v
                 name = (f"len{a:g}_rad{b:g}" + (f"_shaft{c:g}" if c != 1 else "")
                         + (f"_off{o:g}" if o else "") + (f"_str{e:g}" if e != 1 else "")
-                        + (f"_hole{h:g}" if h else "") + f"_piles{count}")
-                file = make(head_variant(discs, *v[:5]), h, out / "variants" / f"{name}.pt")
+                        + (f"_hole{h:g}" if h else "") + (f"_taper{t:g}" if t != 1 else "")
+                        + f"_piles{count}")
+                file = make(head_variant(discs, *v[:5]), h, out / "variants" / f"{name}.pt",
+                            **({"taper": t} if t != 1 else {}))
                 sim = piles(file, out / "piles" / name, count, cfg.seed)
                 row = {"stage": stage, "length": a, "radius": b, "shaft": c, "offset": o,
-                       "stretch": e, "hole": h, "piles": count, "seed": cfg.seed,
+                       "stretch": e, "hole": h, "taper": t, "piles": count, "seed": cfg.seed,
                        "frames": len(user),
                        "distance": float(wasserstein_distance(heights(sim), ref)),
                        **(report(file) if report else {})}
@@ -210,6 +232,9 @@ def match_head(discs: Discs, user_x: np.ndarray, make: Callable[[Discs, float, P
     if any(cfg.holes) and len(discs) != 1:
         raise ValueError(f"holes {cfg.holes} make a ring of one disc; valid: a template of one "
                          f"disc, not {len(discs)}")
+    if any(t != 1 for t in cfg.tapers) and len(discs) != 1:
+        raise ValueError(f"tapers {cfg.tapers} make a frustum of one disc; valid: a template "
+                         f"of one disc, not {len(discs)}")
 
     skipped = []  # the grid's variants the template cannot be, each with why
 
@@ -218,20 +243,23 @@ def match_head(discs: Discs, user_x: np.ndarray, make: Callable[[Discs, float, P
             d = head_variant(discs, *v[:5])
             if v[5]:
                 check_ring(d[0], v[5])
+            if v[6] != 1:
+                taper_slope(d[0], v[6])
         except ValueError as e:  # a head too short for its neighbours, offset too far, a
             skipped.append({**dict(zip(VARIANT_KEYS, v)), "why": str(e)})  # ring's wall too
-            return False  # thin
+            return False  # thin, a frustum's walls too steep
         return True
 
     coarse = measure("coarse", [v for v in itertools.product(
-        cfg.lengths, cfg.radii, cfg.shafts, cfg.offsets, cfg.stretches, cfg.holes)
+        cfg.lengths, cfg.radii, cfg.shafts, cfg.offsets, cfg.stretches, cfg.holes, cfg.tapers)
         if valid(v)], cfg.piles)
     if not coarse:
         raise ValueError("no variant of the grid keeps every disc of the template; valid: "
                          "longer heads or smaller offsets")
     best = min(coarse, key=lambda r: r["distance"])
     fine = []
-    if cfg.fine_piles:  # length and radius about the best, at its shaft, offset and stretch
+    if cfg.fine_piles:  # length and radius about the best, at its shaft, offset, stretch,
+        # hole and taper
         fine = measure("fine", [v for a in _fine(cfg.lengths, best["length"])
                                 for b in _fine(cfg.radii, best["radius"])
                                 if valid(v := (a, b, *_variant(best)[2:]))],
@@ -240,18 +268,19 @@ def match_head(discs: Discs, user_x: np.ndarray, make: Callable[[Discs, float, P
     summary = {"config": config, "discs_before": start,
                "coarse": coarse, "fine": fine, "best": best, "skipped": skipped,
                "discs": [list(s) for s in head_variant(discs, *_variant(best)[:5])],
-               "hole": _variant(best)[5]}
+               "hole": _variant(best)[5], "taper": _variant(best)[6]}
     _plot(coarse, cfg, out / "match.png")
     write_json(out / "summary.json", summary)
     return summary
 
 
-VARIANT_KEYS = ("length", "radius", "shaft", "offset", "stretch", "hole")
+VARIANT_KEYS = ("length", "radius", "shaft", "offset", "stretch", "hole", "taper")
 
 
-def _variant(row: dict) -> tuple[float, float, float, float, float, float]:
-    """A measured variant's factors: `head_variant`'s five, then its hole (0: none)."""
-    return (*(row[k] for k in VARIANT_KEYS[:5]), row.get("hole", 0.0))
+def _variant(row: dict) -> tuple[float, float, float, float, float, float, float]:
+    """A measured variant's factors: `head_variant`'s five, then its hole (0: none) and its
+    taper (1: none)."""
+    return (*(row[k] for k in VARIANT_KEYS[:5]), row.get("hole", 0.0), row.get("taper", 1.0))
 
 
 def _plot(rows: list[dict], cfg: PileMatchConfig, path: Path) -> None:
@@ -273,7 +302,7 @@ def _plot(rows: list[dict], cfg: PileMatchConfig, path: Path) -> None:
     ax.set_title("piles' heights vs the frames' (W1)"
                  + (", best of the other factors"
                     if len(cfg.shafts) * len(cfg.offsets) * len(cfg.stretches)
-                    * len(cfg.holes) > 1 else ""))
+                    * len(cfg.holes) * len(cfg.tapers) > 1 else ""))
     fig.colorbar(im, ax=ax)
     fig.tight_layout()
     tmp = path.with_suffix(".tmp.png")
@@ -283,14 +312,15 @@ def _plot(rows: list[dict], cfg: PileMatchConfig, path: Path) -> None:
 
 
 def disc_model(rod_state: dict, shape_cfg, discs: Discs, file, source="checkpoint",
-               hole: float = 0.0) -> Path:
+               hole: float = 0.0, taper: float = 1.0) -> Path:
     """The rod model `rod_state` with the disc template `discs` (`shapefit.convex_from_rod`;
-    with `hole` above 0 the one disc as a ring) written to `file`: a model `simulate
-    --object` piles up."""
+    with `hole` above 0 the one disc as a ring, with `taper` below 1 as a frustum) written to
+    `file`: a model `simulate --object` piles up."""
     from . import checkpoint
     from .shapefit import convex_from_rod
 
-    new, G, E = convex_from_rod(rod_state, replace(shape_cfg, hole=hole), source, discs=discs)
+    new, G, E = convex_from_rod(rod_state, replace(shape_cfg, hole=hole, taper=taper), source,
+                                discs=discs)
     return checkpoint.save(file, {
         **new, "generator": {k: v.detach().cpu() for k, v in G.state_dict().items()},
         "encoder": {k: v.detach().cpu() for k, v in E.state_dict().items()}})
@@ -323,8 +353,8 @@ def search(rod_file, shape_cfg, data, user_x: np.ndarray, out,
     # the grid's rings must be buildable from these discs: the config says so (raises)
     cut = replace(shape_cfg, hole=max(cfg.holes)) if any(cfg.holes) else shape_cfg
 
-    def make(discs: Discs, hole: float, file: Path) -> Path:
-        return disc_model(state, shape_cfg, discs, file, rod_file, hole)
+    def make(discs: Discs, hole: float, file: Path, taper: float = 1.0) -> Path:
+        return disc_model(state, shape_cfg, discs, file, rod_file, hole, taper)
 
     def piles(file: Path, folder: Path, count: int, seed: int) -> np.ndarray:
         shutil.rmtree(folder, ignore_errors=True)  # of a search killed while simulating it

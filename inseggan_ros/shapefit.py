@@ -70,6 +70,9 @@ class ShapeFitConfig:
     hole: float = 0.0  # with start "discs": above 0, the one disc (pieces 1) as a hexagonal nut
     # whose hole's faces lie at this fraction of its apothem (`ConvexGenerator.init_ring`: six
     # pieces of 12 walls)
+    taper: float = 1.0  # with start "discs": below 1, the one disc (pieces 1) a pyramid's
+    # frustum whose far end's radius is this fraction of its radius (a cone, a stopper:
+    # `ConvexGenerator.init_discs`); 1: a straight disc
     seed: int = 0
 
     def __post_init__(self):
@@ -93,6 +96,12 @@ class ShapeFitConfig:
             raise ValueError(f"hole {self.hole:g} makes a ring of one disc; valid: with start "
                              f"discs, pieces 1 and walls {RING_WALLS} (not {self.start}, "
                              f"{self.pieces}, {self.walls})")
+        if not 0 < self.taper <= 1:
+            raise ValueError(f"taper {self.taper!r} invalid; valid: in (0, 1] (1: no taper)")
+        if self.taper != 1 and (self.start, self.pieces, self.hole) != ("discs", 1, 0.0):
+            raise ValueError(f"taper {self.taper:g} makes a frustum of one disc; valid: with "
+                             f"start discs, pieces 1 and no hole (not {self.start}, "
+                             f"{self.pieces}, hole {self.hole:g})")
         for key in ("encoder_lr", "template_lr"):
             if not 0 < getattr(self, key) < 1:
                 raise ValueError(f"{key} {getattr(self, key)!r} invalid; valid: in (0, 1)")
@@ -247,7 +256,7 @@ def convex_from_rod(state: dict, cfg: ShapeFitConfig, source="checkpoint", x=Non
         if cfg.hole:
             G.init_ring(discs[0], cfg.hole, 0.0)
         else:
-            G.init_discs(piece_order(discs), 0.0)
+            G.init_discs(piece_order(discs), 0.0, cfg.taper)
     else:
         G.init_box(rod_box(rod, x if cfg.thickness == "data" else None))
     # without the rod encoder's distillation record: the encoder's next fit (the loop's) is

@@ -319,7 +319,10 @@ def test_the_loop_piles_a_disc_template_matched_to_the_frames_and_keeps_the_rod(
             (["--model", rod, "--pile-lengths", "0.5,1"], "valid: with --match-piles"),
             (["--model", rod, "--match-pieces", "3"], "valid: with --match-piles"),
             (["--model", rod, "--iterations", "0"], "no encoder stage) with centre_iterations"),
-            (["--model", rod, "--match-piles", "--match-walls", "6"], "walls 6 invalid")):
+            (["--model", rod, "--match-piles", "--match-walls", "6"], "walls 6 invalid"),
+            (["--model", rod, "--match-piles", "--pile-tapers", "0.3,1"],
+             "frustum of one disc"),  # the default two discs
+            (["--model", rod, "--pile-tapers", "0.3,1"], "--pile-tapers")):
         bad = run_cli(*base, *extra, "--out", tmp / "bad")
         assert bad.returncode == 2 and said in bad.stderr, (extra, bad.stderr)
         assert not (tmp / "bad").exists()

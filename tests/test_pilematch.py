@@ -162,6 +162,53 @@ def test_a_nut_s_piles_choose_a_ring_with_its_hole_over_a_solid_disc(tmp_path):
         search(nut, replace(ring, walls=8), user, x, tmp_path / "m8", cfg, progress=False)
 
 
+def test_a_cone_s_piles_choose_a_frustum_with_its_taper_over_a_straight_disc(tmp_path):
+    """`--pile-tapers`: the one disc of a cone's rod (a capsule) as a frustum. The frames are
+    piles of a disc tapering to 0.2 of its radius, and the search over straight and tapered
+    discs keeps that taper; the model written of it is the frustum, one body; the piles'
+    part is named so; a taper of two discs, or with a hole, is refused."""
+    from inseggan_ros import shape
+    from inseggan_ros.centres import piles_part
+
+    cone = REPO / "models" / "cone" / "model.pt"
+    one = ShapeFitConfig(pieces=1, walls=8, iterations=0, start="discs")
+    state = checkpoint.load(cone)
+    discs = rod_discs(checkpoint.build_models(state, cone)[1], 1, 8)
+    truth = disc_model(state, one, head_variant(discs, 0.85, 1.15), tmp_path / "t.pt", cone,
+                       taper=0.2)
+    user = tmp_path / "user"
+    x = piles_of(truth, user, 48)
+    cfg = PileMatchConfig(lengths=(0.85, 1.0), radii=(1.15, 1.3), tapers=(0.2, 1.0), piles=32,
+                          fine_piles=0, seed=1)
+    s = search(cone, one, user, x, tmp_path / "match", cfg, progress=False)
+    assert s["best"]["taper"] == 0.2 and s["taper"] == 0.2, s["coarse"]
+    assert len(s["coarse"]) == 8 and s["skipped"] == []
+    # the search's own model of its best: the frustum, one body, its point at x1
+    best = next((tmp_path / "match" / "variants").glob("*_taper0.2_piles32.pt"))
+    _, G, _ = checkpoint.build_models(checkpoint.load(best), best)
+    corners, real = (t.detach() for t in G.corners())
+    (x0, x1, r), = head_variant(discs, s["best"]["length"], s["best"]["radius"])
+    ends = corners[0][real[0]]
+    wide, narrow = (float(ends[(ends[:, 0] - e).abs() < 1e-4][:, 1:].norm(dim=1).max())
+                    for e in (x0, x1))
+    assert narrow == pytest.approx(0.2 * wide, rel=1e-3)
+    assert shape.components(shape.template_pieces(G)) == 1
+    # what the loop makes of it (`loop.match_stage`), and what the card says its piles are of
+    from inseggan_ros.shapefit import fit_shape
+    kept = fit_shape(cone, x[:4], tmp_path / "fit", replace(one, taper=s["taper"]),
+                     progress=False, discs=s["discs"])["model"]
+    sim = tmp_path / "piles"
+    generate(DatasetSpec(SceneConfig(object=str(kept), instances=2),
+                         {"train": 1, "val": 0, "test": 0}, seed=1), sim, progress=False)
+    assert "tapering to 0.2" in piles_part(sim)
+    with pytest.raises(ValueError, match="tapers"):
+        PileMatchConfig(tapers=(0.0, 1.0))
+    with pytest.raises(ValueError, match="both set"):
+        PileMatchConfig(holes=(0.0, 0.5), tapers=(0.5, 1.0))
+    with pytest.raises(ValueError, match="frustum of one disc"):
+        search(ROD, SHAPE, user, x, tmp_path / "two", cfg, progress=False)
+
+
 def test_a_recording_s_piles_are_seen_through_the_camera_its_frames_give(tmp_path):
     """From a bag (depth and CameraInfo, no labels): the variants are piled in the bin and seen
     through the camera estimated from the recording, and cut as its frames are."""

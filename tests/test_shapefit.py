@@ -93,6 +93,50 @@ def test_discs_follow_a_rods_step_and_make_one_body_of_those_sizes():
         rod_discs(rod, 200, 8)
 
 
+def test_a_tapered_disc_is_a_frustum_of_its_radii_and_the_rest_is_refused():
+    """`taper` (a cone, a stopper): one disc whose walls lean in along the axis, its apothem r
+    at x0 and taper x r at x1, the caps where the disc ends; its volume is the frustum's, one
+    body; a taper of two discs, a wall steeper than a tilt can lean, a point thinner than a
+    piece's least extent, and a taper of a box or a ring are refused by name."""
+    import math
+
+    from inseggan_ros.model import CONVEX_MIN_EXTENT, ModelConfig, taper_slope
+    from inseggan_ros.shape import components, occupancy, template_pieces
+
+    G = ConvexGenerator(ModelConfig(renderer="convex", composite="zbuffer", pieces=1, walls=8,
+                                    floor_contact=True))
+    x0, x1, r, taper = -0.4, 0.4, 0.3, 0.2
+    G.init_discs([(x0, x1, r)], 0.0, taper)
+    x, real = (t.detach() for t in G.corners())
+    x = x[0][real[0]]
+    assert len(x) == 16  # two octagons, one at each end
+    for end, rad in ((x0, r), (x1, taper * r)):
+        ring = x[(x[:, 0] - end).abs() < 1e-4]
+        assert len(ring) == 8  # the octagon's corners at its apothem / cos(pi / 8)
+        np.testing.assert_allclose(ring[:, 1:].norm(dim=1), rad / math.cos(math.pi / 8),
+                                   rtol=1e-4)
+    assert components(template_pieces(G)) == 1
+    # inside at the wide end's rim, outside at the narrow end's: the walls lean
+    inside = occupancy(template_pieces(G), np.array([[x0 + 0.01, 0.0, 0.9 * r],
+                                                     [x1 - 0.01, 0.0, 0.9 * r],
+                                                     [x1 - 0.01, 0.0, 0.9 * taper * r]]))
+    assert list(inside) == [True, False, True]
+    assert taper_slope((x0, x1, r), taper) == pytest.approx(r * (1 - taper) / (x1 - x0))
+    with pytest.raises(ValueError, match="one piece"):
+        ConvexGenerator(ModelConfig(renderer="convex", composite="zbuffer", pieces=2, walls=8)
+                        ).init_discs([(-0.4, 0.0, 0.3), (0.0, 0.4, 0.1)], 0.0, taper)
+    with pytest.raises(ValueError, match="leaning"):  # a short, wide disc to a point
+        G.init_discs([(-0.1, 0.1, 0.3)], 0.0, 0.2)
+    with pytest.raises(ValueError, match="narrow end"):
+        G.init_discs([(x0, x1, r)], 0.0, CONVEX_MIN_EXTENT / r / 2)
+    with pytest.raises(ValueError, match="taper"):
+        ShapeFitConfig(taper=0.5)  # a box
+    with pytest.raises(ValueError, match="taper"):
+        ShapeFitConfig(start="discs", pieces=1, walls=12, hole=0.5, taper=0.5)  # a ring
+    with pytest.raises(ValueError, match="taper"):
+        ShapeFitConfig(start="discs", pieces=1, taper=0.0)
+
+
 def test_a_flange_between_two_shafts_is_built_as_thin_as_its_disc():
     """Three discs, the middle the widest (a pin's flange): built in the order along the axis,
     the flange reaches back to the first shaft's centre at its own width (4 times as long as
