@@ -169,16 +169,17 @@ def _fine(values: tuple[float, ...], best: float) -> tuple[float, ...]:
     return tuple(round(v, 4) for v in (best - lo, best, best + hi) if v > 0)
 
 
-def match_head(discs: Discs, user_x: np.ndarray, make: Callable[[Discs, float, Path], Path],
+def match_head(discs: Discs, user_x: np.ndarray,
+               make: Callable[[Discs, float, Path, float], Path],
                piles: Callable[[Path, Path, int, int], np.ndarray], out,
                cfg: PileMatchConfig = PileMatchConfig(), progress: bool = True,
                report: Callable[[Path], dict] | None = None) -> dict:
     """The head of `discs` sized by pile statistics -> summary (also out/summary.json): every
-    variant measured, the discs kept ("discs") and their hole ("hole", 0: none). `user_x`: the
-    user's frames (N, 1, H, W); `make(discs, hole, file)` writes a model with those discs to
-    `file` (with `hole` above 0 the one disc as a ring, `cfg.holes`; `taper`, a keyword, below
-    1: as a frustum, `cfg.tapers`); `piles(model_file,
-    folder, count, seed)` simulates `count` piles of it into `folder` and returns their frames
+    variant measured, the discs kept ("discs"), their hole ("hole", 0: none) and taper ("taper",
+    1: none). `user_x`: the user's frames (N, 1, H, W); `make(discs, hole, file, taper)` writes
+    a model with those discs to `file` (with `hole` above 0 the one disc as a ring,
+    `cfg.holes`; with `taper` below 1 as a frustum, `cfg.tapers`); `piles(model_file, folder,
+    count, seed)` simulates `count` piles of it into `folder` and returns their frames
     as the user's are cut. Each variant's result is kept in out/variants.jsonl as it is
     measured, so a killed search resumes where it stopped (and one with other grids reuses the
     variants measured alike); `report(model_file)` (a library part's true shape, for the record
@@ -215,8 +216,7 @@ def match_head(discs: Discs, user_x: np.ndarray, make: Callable[[Discs, float, P
                         + (f"_off{o:g}" if o else "") + (f"_str{e:g}" if e != 1 else "")
                         + (f"_hole{h:g}" if h else "") + (f"_taper{t:g}" if t != 1 else "")
                         + f"_piles{count}")
-                file = make(head_variant(discs, *v[:5]), h, out / "variants" / f"{name}.pt",
-                            **({"taper": t} if t != 1 else {}))
+                file = make(head_variant(discs, *v[:5]), h, out / "variants" / f"{name}.pt", t)
                 sim = piles(file, out / "piles" / name, count, cfg.seed)
                 row = {"stage": stage, "length": a, "radius": b, "shaft": c, "offset": o,
                        "stretch": e, "hole": h, "taper": t, "piles": count, "seed": cfg.seed,
@@ -353,7 +353,7 @@ def search(rod_file, shape_cfg, data, user_x: np.ndarray, out,
     # the grid's rings must be buildable from these discs: the config says so (raises)
     cut = replace(shape_cfg, hole=max(cfg.holes)) if any(cfg.holes) else shape_cfg
 
-    def make(discs: Discs, hole: float, file: Path, taper: float = 1.0) -> Path:
+    def make(discs: Discs, hole: float, file: Path, taper: float) -> Path:
         return disc_model(state, shape_cfg, discs, file, rod_file, hole, taper)
 
     def piles(file: Path, folder: Path, count: int, seed: int) -> np.ndarray:

@@ -95,7 +95,7 @@ def test_discs_follow_a_rods_step_and_make_one_body_of_those_sizes():
 
 def test_a_tapered_disc_is_a_frustum_of_its_radii_and_the_rest_is_refused():
     """`taper` (a cone, a stopper): one disc whose walls lean in along the axis, its apothem r
-    at x0 and taper x r at x1, the caps where the disc ends; its volume is the frustum's, one
+    at x0 and taper x r at x1, the caps where the disc ends (its corners the frustum's), one
     body; a taper of two discs, a wall steeper than a tilt can lean, a point thinner than a
     piece's least extent, and a taper of a box or a ring are refused by name."""
     import math
