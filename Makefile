@@ -19,18 +19,18 @@ test: setup
 	@bash scripts/test.sh
 
 demo: setup
-	@$(ENV) ROS_DOMAIN_ID=$${ROS_DOMAIN_ID:-42} python -m inseggan_ros.demo
+	@$(ENV) ROS_DOMAIN_ID=$${ROS_DOMAIN_ID:-42} python -m tools.demo
 
 # make run EXE=bin_replay ARGS="--ros-args -p object:=bolt"   (what `ros2 run inseggan_ros EXE` does)
 run: setup
 	@$(ENV) ROS_DOMAIN_ID=$${ROS_DOMAIN_ID:-42} scripts/ros2run inseggan_ros $(EXE) $(ARGS)
 
 bench: setup
-	@$(ENV) scripts/ros2run inseggan_ros inseggan bench-sim
+	@$(ENV) python -m tools.bench_sim
 
 # segmenter node: 1280x720 16UC1 at 30 Hz for 60 s; latency, drops, peak memory
 bench-node: setup
-	@$(ENV) ROS_DOMAIN_ID=$${ROS_DOMAIN_ID:-43} python -m inseggan_ros.bench_node
+	@$(ENV) ROS_DOMAIN_ID=$${ROS_DOMAIN_ID:-43} python -m tools.bench_node
 
 sheet: setup
 	@$(ENV) scripts/ros2run inseggan_ros inseggan contact-sheet --out docs/contact_sheet.png

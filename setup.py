@@ -19,7 +19,7 @@ def share_tree(folder):
 setup(
     name=package_name,
     version="0.1.0",
-    packages=find_packages(exclude=["tests"]),
+    packages=find_packages(exclude=["tests", "tools"]),
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml", "README.md"]),
@@ -33,9 +33,9 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            "inseggan = inseggan_ros.cli:main",
-            "bin_replay = inseggan_ros.nodes.bin_replay:main",
-            "segmenter = inseggan_ros.nodes.segmenter:main",
+            "inseggan = inseggan_ros.cli.main:main",
+            "bin_replay = inseggan_ros.ros.bin_replay:main",
+            "segmenter = inseggan_ros.ros.segmenter:main",
         ],
     },
 )

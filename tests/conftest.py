@@ -31,7 +31,7 @@ def installed_executable(name: str) -> Path:
 def checkpoint_without_settings(path: Path) -> Path:
     """The shipped cylinder model without its stored settings, as a training checkpoint has
     none, written to `path`."""
-    from inseggan_ros import checkpoint
+    from inseggan_ros.core import checkpoint
 
     state = checkpoint.load(REPO / "models" / "cylinder" / "model.pt")
     del state["inference"]
@@ -96,8 +96,8 @@ def cylinder_bag():
     per test module, which may change the model's settings."""
     import torch
 
-    from inseggan_ros import data
-    from inseggan_ros.segment import Segmenter
+    from inseggan_ros.data import datasets as data
+    from inseggan_ros.runtime.segment import Segmenter
 
     torch.set_num_threads(1)
     seg = Segmenter.from_checkpoint(REPO / "models" / "cylinder" / "model.pt", device="cpu")
@@ -110,7 +110,7 @@ def zbuffer_settings(cfg):
     what the shipped cylinder ran before its centre votes, for the tests of what comes after
     the z-buffer (tau, the vote, the split; over centre votes there is no vote, and one
     starting point: their own tests are test_centres.py)."""
-    from inseggan_ros import settings
+    from inseggan_ros.core import settings
 
     return replace(settings.apply_file(cfg, "realtime"), centre_votes="off")
 

@@ -20,19 +20,19 @@ import numpy as np
 def main() -> int:
     mode, width, height, count, value, dds = sys.argv[1:7]
     width, height, count, value = int(width), int(height), int(count), float(value)
-    from inseggan_ros.dds import PROFILE_VARIABLES
+    from inseggan_ros.ros.dds import PROFILE_VARIABLES
 
     for v in PROFILE_VARIABLES:  # what the user's shell would not have set
         os.environ.pop(v, None)
     if dds == "ros2run":
-        from inseggan_ros.nodes.common import use_large_frames_profile
+        from inseggan_ros.ros.common import use_large_frames_profile
 
         assert use_large_frames_profile() is not None
     import rclpy
     from rclpy.qos import QoSHistoryPolicy, qos_profile_sensor_data
     from sensor_msgs.msg import Image
 
-    from inseggan_ros.nodes import conversions
+    from inseggan_ros.ros import conversions
 
     rclpy.init()
     node = rclpy.create_node(f"delivery_{mode}")

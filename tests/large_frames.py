@@ -8,7 +8,7 @@ import rclpy
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import Image
 
-from inseggan_ros.nodes import conversions
+from inseggan_ros.ros import conversions
 
 
 def main() -> int:

@@ -12,8 +12,8 @@ import pytest
 from conftest import BAGS, installed_executable, run_cli
 from test_bin_replay import stop
 
-from inseggan_ros import bags
-from inseggan_ros.bags import BagError, BagWriter, CameraInfo, read_all
+from inseggan_ros.io import bags
+from inseggan_ros.io.bags import BagError, BagWriter, CameraInfo, read_all
 
 pytestmark = pytest.mark.serial  # nodes over real DDS: run alone (setup.cfg)
 

@@ -1,4 +1,4 @@
-"""The classical baselines (inseggan_ros.baselines) on synthetic height images of discs: the
+"""The classical baselines (`evaluation.baselines`) on synthetic height images of discs: the
 label-image contract every baseline promises, determinism, accuracy where the task is easy,
 edge cases and input errors."""
 import inspect
@@ -7,8 +7,8 @@ import time
 import numpy as np
 import pytest
 
-from inseggan_ros.baselines import BASELINES, kmeans
-from inseggan_ros.metrics import miou
+from inseggan_ros.evaluation.baselines import BASELINES, kmeans
+from inseggan_ros.core.metrics import miou
 
 SIZE = 64
 

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from conftest import BAGS, installed_executable, set_params
 
-from inseggan_ros import bags
-from inseggan_ros.image_codec import metres_to_depth
+from inseggan_ros.io import bags
+from inseggan_ros.core.image_codec import metres_to_depth
 from inseggan_ros.sim.dataset import scene_seed
 from inseggan_ros.sim.scene import BinSimulator, SceneConfig
 

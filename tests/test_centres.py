@@ -9,14 +9,16 @@ import pytest
 import torch
 
 from conftest import run_cli
-from inseggan_ros import checkpoint, settings
-from inseggan_ros.centres import (OFFSET_UNIT, CentreConfig, CentreNet, centre_labels, decode,
-                                  fit, match_to_renders, miou_of, targets)
-from inseggan_ros.data import load_sim_split
-from inseggan_ros.loop import LoopConfig
-from inseggan_ros.paths import resolve_model
-from inseggan_ros.segment import Segmenter
-from inseggan_ros.settings import InferenceConfig
+from inseggan_ros.core import checkpoint
+from inseggan_ros.core import settings
+from inseggan_ros.learning.centres import (
+    OFFSET_UNIT, CentreConfig, CentreNet, centre_labels, decode, fit, match_to_renders, miou_of,
+    targets)
+from inseggan_ros.data.datasets import load_sim_split
+from inseggan_ros.learning.loop import LoopConfig
+from inseggan_ros.core.paths import resolve_model
+from inseggan_ros.runtime.segment import Segmenter
+from inseggan_ros.core.settings import InferenceConfig
 
 
 def _blocks() -> torch.Tensor:
@@ -176,7 +178,7 @@ def test_self_labels_teach_the_net_the_models_own_labels_of_the_users_frames(tmp
     itself (centre votes off; no true label read), teach the net; the last --held-out frames
     choose the iteration. The labels it cached are the model's own, not the true ones; the net
     learns them; the card says where it was taught; too few frames are refused by name."""
-    from inseggan_ros.modelcard import _centres_line, centres_record
+    from inseggan_ros.evaluation.modelcard import _centres_line, centres_record
 
     data = tmp / "data"
     run_cli("simulate", "--quiet", "--object", "cylinder", "--count", "56", "--split",
@@ -230,8 +232,8 @@ def test_self_labels_from_a_recording_label_all_its_frames(tmp):
     the model cuts a bag's, labelled by the model itself; the last --held-out choose. With
     --teacher-centre-votes the labels are the model's as it ships (its centre votes on), not
     its z-buffer's. A folder that is neither a data set nor a bag is refused by name."""
-    from inseggan_ros.data import load_bag
-    from inseggan_ros.modelcard import _centres_line, centres_record
+    from inseggan_ros.data.datasets import load_bag
+    from inseggan_ros.evaluation.modelcard import _centres_line, centres_record
 
     bag = tmp / "bag"
     run_cli("simulate-bag", "--quiet", "--object", "cylinder", "--count", "16", "--seed", "5",

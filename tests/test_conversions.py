@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from inseggan_ros.nodes import conversions
+from inseggan_ros.ros import conversions
 
 
 @pytest.mark.parametrize("encoding, dtype, channels", [

@@ -4,9 +4,9 @@ import pytest
 import torch
 from conftest import BAGS
 
-from inseggan_ros.data import (DepthTensorDataset, load_bag, load_sim_split, rotate,
-                               sim_preprocess_config)
-from inseggan_ros.preprocess import PreprocessConfig, roi_from_camera
+from inseggan_ros.data.datasets import (
+    DepthTensorDataset, load_bag, load_sim_split, rotate, sim_preprocess_config)
+from inseggan_ros.runtime.preprocess import PreprocessConfig, roi_from_camera
 from inseggan_ros.sim.camera import get_camera
 from inseggan_ros.sim.dataset import DatasetSpec, generate, load_meta
 from inseggan_ros.sim.scene import SceneConfig
@@ -88,7 +88,7 @@ def test_load_bag_finds_the_bin_itself():
 
 
 def test_load_bag_without_labels(tmp_path):
-    from inseggan_ros import bags
+    from inseggan_ros.io import bags
 
     frames = bags.read_all(BAGS / "cylinder_sim", limit=2)
     for f in frames:

@@ -4,7 +4,7 @@ import json
 import numpy as np
 from conftest import run_cli
 
-from inseggan_ros import bags
+from inseggan_ros.io import bags
 from inseggan_ros.sim.dataset import iter_scenes, load_meta, scene_seed
 from inseggan_ros.sim.scene import BinSimulator, SceneConfig
 

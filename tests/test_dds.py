@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from inseggan_ros.dds import PROFILE_VARIABLES, large_frames_profile, use_large_frames_profile
+from inseggan_ros.ros.dds import PROFILE_VARIABLES, large_frames_profile, use_large_frames_profile
 
 pytestmark = pytest.mark.serial  # nodes over real DDS: run alone (setup.cfg)
 

@@ -1,4 +1,4 @@
-"""`scripts/device_train.py pack`: a recording packed as `inseggan loop --bag` learns its shape
+"""`tools/device_train.py pack`: a recording packed as `inseggan loop --bag` learns its shape
 from it, read back by `unpack` (what the GPU machine trains on)."""
 from __future__ import annotations
 
@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 from conftest import BAGS, REPO
 
-sys.path.insert(0, str(REPO / "scripts"))
+sys.path.insert(0, str(REPO / "tools"))
 
 import device_train  # noqa: E402
 
 
 def test_a_recording_packs_as_the_loop_reads_it(tmp_path):
-    from inseggan_ros.loop import BagFrames
-    from inseggan_ros.preprocess import PreprocessConfig
+    from inseggan_ros.learning.loop import BagFrames
+    from inseggan_ros.runtime.preprocess import PreprocessConfig
 
     bag, out = BAGS / "cone_sim", tmp_path / "cone.npz"
     assert device_train.main(["pack", "--bag", str(bag), "--instances", "5",

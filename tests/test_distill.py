@@ -7,10 +7,12 @@ import pytest
 import torch
 from conftest import run_cli
 
-from inseggan_ros import checkpoint, losses
-from inseggan_ros.data import load_sim_split
-from inseggan_ros.distill import _features, narrowed, widened
-from inseggan_ros.segment import Segmenter
+from inseggan_ros.core import checkpoint
+from inseggan_ros.learning import losses
+from inseggan_ros.data.datasets import load_sim_split
+from inseggan_ros.learning.distill import _features, narrowed, widened
+from inseggan_ros.runtime.segment import Segmenter
+from inseggan_ros.runtime.model import build_models
 
 MODEL = Path(__file__).resolve().parents[1] / "models" / "cylinder" / "model.pt"
 
@@ -26,7 +28,7 @@ def cyl_data(tmp_path_factory):
 def _pose_loss(path, x, pseudo) -> float:
     """Hungarian-matched pose-feature error of the checkpoint's encoder against the
     pseudo-labels."""
-    _, G, E = checkpoint.build_models(checkpoint.load(path), path)
+    _, G, E = build_models(checkpoint.load(path), path)
     with torch.no_grad():
         z = E.eval()(x)
         pose = G.pose(z.reshape(-1, z.shape[-1])).reshape(len(x), z.shape[1], 6)
@@ -96,7 +98,7 @@ def test_a_narrower_encoder_pruned_from_the_source_learns_the_refined_poses(tmp,
     pseudo = torch.load(out / "pseudo.pt", weights_only=False)["poses"]
     x = torch.from_numpy(load_sim_split(cyl_data, "train", limit=32)["x"])
     pruned = tmp / "pruned.pt"  # the starting point: pruned, not yet trained
-    _, _, E = checkpoint.build_models(checkpoint.load(MODEL))
+    _, _, E = build_models(checkpoint.load(MODEL))
     checkpoint.save(pruned, {**state, "encoder": narrowed(E, 8).state_dict()})
     before, after = _pose_loss(pruned, x, pseudo), _pose_loss(out / "last.pt", x, pseudo)
     # measured here: 0.122 -> 0.062 (8 wide, from the shipped 16-wide encoder)
@@ -109,7 +111,7 @@ def test_a_narrower_encoder_pruned_from_the_source_learns_the_refined_poses(tmp,
 
 
 def test_narrowing_keeps_the_widest_channels_and_the_same_width_changes_nothing():
-    _, _, E = checkpoint.build_models(checkpoint.load(MODEL))
+    _, _, E = build_models(checkpoint.load(MODEL))
     width = E.width
     x = torch.randn(3, 1, 64, 64)
     with torch.no_grad():
@@ -129,7 +131,7 @@ def test_widening_computes_what_the_source_encoder_computes(factor):
     """`widened` (Net2Net): without noise the wider encoder's codes are the source's, up to
     float32 rounding, whether every channel is copied (twice the width) or some are (1.5
     times); the noise makes the copies' weights differ, and narrower is refused."""
-    _, _, E = checkpoint.build_models(checkpoint.load(MODEL))
+    _, _, E = build_models(checkpoint.load(MODEL))
     width = E.width
     nf = int(width * factor)
     x = torch.rand(3, 1, 64, 64) * 2 - 1
@@ -158,7 +160,7 @@ def test_a_wider_encoder_widened_from_the_source_trains_and_segments(tmp, cyl_da
 
 
 def test_distill_config_is_validated():
-    from inseggan_ros.distill import DistillConfig
+    from inseggan_ros.learning.distill import DistillConfig
 
     for bad, match in (({"lr_schedule": "linear"},
                         "lr_schedule 'linear' invalid; valid: constant, cosine"),
@@ -215,7 +217,7 @@ def _label_loss(path, data) -> float:
     """The checkpoint's encoder poses (one start) scored by `losses.label_loss` against the
     labels of simulated scenes."""
     x, labels = torch.from_numpy(data["x"]), torch.from_numpy(data["labels"].astype("int64"))
-    _, G, E = checkpoint.build_models(checkpoint.load(path), path)
+    _, G, E = build_models(checkpoint.load(path), path)
     with torch.no_grad():
         z = E.eval()(x)
         pose = G.pose(z.reshape(-1, z.shape[-1])).reshape(len(x), z.shape[1], 6)
@@ -249,7 +251,7 @@ def test_the_users_own_frames_are_reconstructed_better_with_their_loss(tmp, cyl_
     x = torch.from_numpy(load_sim_split(user, "train")["x"])
 
     def recon(path) -> float:
-        _, G, E = checkpoint.build_models(checkpoint.load(path), path)
+        _, G, E = build_models(checkpoint.load(path), path)
         with torch.no_grad():
             z = E.eval()(x)
             pose = G.pose(z.reshape(-1, z.shape[-1])).reshape(len(x), z.shape[1], 6)

@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from inseggan_ros import image_codec
-from inseggan_ros.image_codec import ImageFormatError, decode, encode
+from inseggan_ros.core import image_codec
+from inseggan_ros.core.image_codec import ImageFormatError, decode, encode
 
 
 @pytest.mark.parametrize("encoding,dtype", [("16UC1", np.uint16), ("32FC1", np.float32),

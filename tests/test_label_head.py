@@ -9,12 +9,13 @@ import pytest
 import torch
 from conftest import run_cli, zbuffer_settings
 
-from inseggan_ros import checkpoint
-from inseggan_ros.data import load_sim_split
-from inseggan_ros.label_head import LabelHead, head_labels, miou_of, proposals, slot_targets
-from inseggan_ros.paths import resolve_model
-from inseggan_ros.segment import Segmenter
-from inseggan_ros.settings import InferenceConfig
+from inseggan_ros.core import checkpoint
+from inseggan_ros.data.datasets import load_sim_split
+from inseggan_ros.learning.label_head import (
+    LabelHead, head_labels, miou_of, proposals, slot_targets)
+from inseggan_ros.core.paths import resolve_model
+from inseggan_ros.runtime.segment import Segmenter
+from inseggan_ros.core.settings import InferenceConfig
 
 
 def test_each_true_instance_takes_the_slot_that_overlaps_it_most():

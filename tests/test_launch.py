@@ -71,7 +71,7 @@ def _declared_arguments(tree):
 
 
 def test_segmenter_launch_arguments_and_topic_names():
-    from inseggan_ros.nodes import common
+    from inseggan_ros.ros import common
 
     tree = _tree("segmenter.launch.py")
     assert _declared_arguments(tree) == {"model", "params_file", "namespace", "depth_topic",

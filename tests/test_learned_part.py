@@ -8,10 +8,10 @@ import torch
 from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 
-from inseggan_ros.checkpoint import build_models, load
+from inseggan_ros.core.checkpoint import load
+from inseggan_ros.runtime.model import build_models
 from inseggan_ros.sim.camera import CameraConfig
-from inseggan_ros.sim.learned import (model_camera, template_object, template_origin,
-                                      template_scale)
+from inseggan_ros.sim.learned import model_camera, template_object, template_origin, template_scale
 from inseggan_ros.sim.objects import get_object
 from inseggan_ros.sim.scene import BinSimulator, SceneConfig
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PATHS = [str(ROOT / p) for p in ("inseggan_ros", "tests", "launch", "scripts", "setup.py")
+PATHS = [str(ROOT / p) for p in ("inseggan_ros", "tests", "tools", "launch", "scripts", "setup.py")
          if (ROOT / p).exists()]
 
 

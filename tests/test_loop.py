@@ -10,14 +10,16 @@ import pytest
 import torch
 from conftest import REPO, run_cli
 
-from inseggan_ros import checkpoint, losses
-from inseggan_ros.data import load_bag, load_sim_split
-from inseggan_ros.loop import AUTO_SIZE_ROUNDS, VOTE_SCALES
-from inseggan_ros.preprocess import PreprocessConfig
+from inseggan_ros.core import checkpoint
+from inseggan_ros.learning import losses
+from inseggan_ros.data.datasets import load_bag, load_sim_split
+from inseggan_ros.learning.loop import AUTO_SIZE_ROUNDS, VOTE_SCALES
+from inseggan_ros.runtime.preprocess import PreprocessConfig
 from inseggan_ros.sim.learned import model_camera, template_scale
-from inseggan_ros.metrics import mean_miou, miou_batch
-from inseggan_ros.modelcard import markdown
-from inseggan_ros.segment import labels_from_renders
+from inseggan_ros.core.metrics import mean_miou, miou_batch
+from inseggan_ros.evaluation.modelcard import markdown
+from inseggan_ros.runtime.segment import labels_from_renders
+from inseggan_ros.runtime.model import build_models
 
 # a box part's model as training left it, without labels: the wooden_block model shipped before
 # its encoder went through the loop (every shipped model has now been through it, so none of them
@@ -30,7 +32,7 @@ def _scores(path, data) -> tuple[float, float]:
     """The encoder's own poses (one start, no smoothing) on labelled frames -> (the label loss
     the loop trains on, mIoU at the model's tau)."""
     state = checkpoint.load(path)
-    _, G, E = checkpoint.build_models(state, path)
+    _, G, E = build_models(state, path)
     x = torch.from_numpy(data["x"])
     with torch.no_grad():
         z = E.eval()(x)
@@ -118,8 +120,8 @@ def test_a_tiny_loop_explains_held_out_scenes_of_its_shape_better_than_its_start
     assert "labelled by this model itself" in (out / "model" / "README.md").read_text()
     # without a model the loop's first stage learns the shape from the data set's training
     # frames (here for 2 iterations; from a bag, the test below)
-    from inseggan_ros.loop import learn_shape
-    from inseggan_ros.train import get_config
+    from inseggan_ros.learning.loop import learn_shape
+    from inseggan_ros.learning.train import get_config
 
     cfg = get_config("cpu_spheres", max_iterations=2, eval_every=2, checkpoint_every=2)
     state = checkpoint.load(learn_shape(user, tmp / "shape", cfg, progress=False))
@@ -184,7 +186,7 @@ def test_one_command_from_a_bag_learns_the_shape_then_ships_a_model(tmp):
     assert cam is not None and cam.fx == pytest.approx(426.0) and abs(cam.tilt - 3) < 0.5
     x0, _, x1, _ = view["roi"]
     want = (x1 - x0) * view["floor_depth"] / cam.fx / 2  # at the floor; the template's middle
-    scale = template_scale(learned, checkpoint.build_models(learned)[1], cam)  # is nearer
+    scale = template_scale(learned, build_models(learned)[1], cam)  # is nearer
     assert 0.8 * want < scale[0] <= want, (scale, want)
     card = json.loads((out / "model" / "card.json").read_text())
     assert card["label_free"] and card["source"]["kind"] == "bag"

@@ -1,11 +1,11 @@
-"""The paper's mIoU (inseggan_ros.metrics) on label images whose answers are worked out by hand,
+"""The paper's mIoU (`core.metrics`) on label images whose answers are worked out by hand,
 and against a slow, obviously-correct loop implementation on random label images."""
 import math
 
 import numpy as np
 import pytest
 
-from inseggan_ros.metrics import mean_miou, miou, miou_batch
+from inseggan_ros.core.metrics import mean_miou, miou, miou_batch
 
 
 def reference_miou(pred: np.ndarray, gt: np.ndarray) -> float:

@@ -10,8 +10,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from inseggan_ros import losses
-from inseggan_ros.model import Discriminator, Encoder, Generator, ModelConfig, rodrigues
+from inseggan_ros.learning import losses
+from inseggan_ros.runtime.model import Discriminator, Encoder, Generator, ModelConfig, rodrigues
 
 SMALL = dict(nf=8, latent_dim=16, n_instances=3)
 
@@ -145,8 +145,8 @@ def test_generators_share_one_interface():
     """Every generator decodes poses and z-buffers; the explicit ones (TemplateGenerator) also
     render given poses and expose their template's geometry, which test-time fitting uses; old
     checkpoints' retired config fields are ignored."""
-    from inseggan_ros.model import (ConvexGenerator, PoseGenerator, SphereGenerator,
-                                    TemplateGenerator, make_generator)
+    from inseggan_ros.runtime.model import (
+        ConvexGenerator, PoseGenerator, SphereGenerator, TemplateGenerator, make_generator)
 
     learned = make_generator(ModelConfig(**SMALL))
     assert isinstance(learned, PoseGenerator) and not isinstance(learned, TemplateGenerator)
@@ -170,7 +170,7 @@ def test_convex_template_renders_in_float32_under_mixed_precision():
     """Training on a GPU runs under bfloat16 autocast; the convex template's corner solves have
     no bfloat16 kernel there, and its heights are differences of plane distances: it renders
     in float32 whatever the autocast, the same as without it, and its gradients flow."""
-    from inseggan_ros.model import make_generator
+    from inseggan_ros.runtime.model import make_generator
 
     G = make_generator(ModelConfig(**{**SMALL, "renderer": "convex", "composite": "zbuffer",
                                       "floor_contact": True}))
@@ -193,7 +193,7 @@ def test_sphere_template_is_one_connected_object_whatever_its_parameters():
     template's own lift, none with lift 1.)"""
     from scipy import ndimage
 
-    from inseggan_ros.model import SphereGenerator, make_generator
+    from inseggan_ros.runtime.model import SphereGenerator, make_generator
 
     torch.manual_seed(0)
     cfg = ModelConfig(renderer="spheres", composite="zbuffer", spheres=6, **SMALL)
@@ -242,7 +242,7 @@ def test_pyramid_l1_is_l1_at_one_level_and_sees_far_misses_at_coarse_ones():
 
 
 def test_monotone_rod_profile_cannot_become_a_dumbbell():
-    from inseggan_ros.model import SphereGenerator
+    from inseggan_ros.runtime.model import SphereGenerator
 
     G = SphereGenerator(ModelConfig(renderer="spheres", composite="zbuffer", spheres=6,
                                     radius_profile="monotone", **SMALL))
@@ -268,7 +268,7 @@ def test_fast_pooling_gives_the_same_numbers_as_avg_pool2d():
     `refine._composite_loss`, which pools each input once for all its composites, is
     `pyramid_l1` per frame against the input repeated. (Bit for bit on the machines measured;
     compared here to float32 rounding, which is what another CPU's kernels may change.)"""
-    from inseggan_ros.refine import _composite_loss
+    from inseggan_ros.runtime.refine import _composite_loss
 
     gen = torch.Generator().manual_seed(0)
     for shape in [(200, 1, 32, 32), (3, 5, 16, 16), (2, 1, 7, 9), (1, 1, 64, 64)]:
@@ -287,7 +287,7 @@ def test_fast_pooling_gives_the_same_numbers_as_avg_pool2d():
 def test_floor_contact_lifts_a_sunken_rod_onto_the_floor():
     """With floor_contact a rod posed below the floor renders as the same rod lying on it (its
     lowest point at height 0); without it, it sinks out of sight."""
-    from inseggan_ros.model import SphereGenerator
+    from inseggan_ros.runtime.model import SphereGenerator
 
     def rod(floor_contact):
         G = SphereGenerator(ModelConfig(renderer="spheres", composite="zbuffer", spheres=4,
@@ -315,8 +315,8 @@ def test_floor_contact_lifts_a_sunken_rod_onto_the_floor():
 def test_multi_start_refinement_never_fits_worse_than_one_start():
     """Hypothesis 0 follows exactly the single-start trajectory (every scene is fitted on its
     own), so the best of several fits each frame at least as well; it is deterministic."""
-    from inseggan_ros.model import make_generator
-    from inseggan_ros.refine import refine_poses, start_poses
+    from inseggan_ros.runtime.model import make_generator
+    from inseggan_ros.runtime.refine import refine_poses, start_poses
 
     torch.manual_seed(0)
     cfg = ModelConfig(renderer="spheres", composite="zbuffer", spheres=4, **SMALL)
@@ -347,8 +347,8 @@ def test_multi_start_refinement_never_fits_worse_than_one_start():
 def test_refining_only_the_best_fitting_start():
     """keep=1 chooses the start that fits best before refining it, and then refines exactly that
     one (the same poses as refining it alone); with 0 steps it is the choice alone."""
-    from inseggan_ros.model import make_generator
-    from inseggan_ros.refine import _fit_loss, refine_poses, start_poses
+    from inseggan_ros.runtime.model import make_generator
+    from inseggan_ros.runtime.refine import _fit_loss, refine_poses, start_poses
 
     torch.manual_seed(0)
     cfg = ModelConfig(renderer="spheres", composite="zbuffer", spheres=4, **SMALL)
@@ -373,7 +373,7 @@ def test_refining_only_the_best_fitting_start():
 
 def _rod(length: float, radius: float):
     """A small rod of 4 spheres of a known length and radius, resting on the floor, in eval."""
-    from inseggan_ros.model import make_generator
+    from inseggan_ros.runtime.model import make_generator
 
     G = make_generator(ModelConfig(renderer="spheres", composite="zbuffer", spheres=4,
                                    **SMALL)).eval()
@@ -390,8 +390,8 @@ def test_instances_swapped_in_from_other_starts(monkeypatch):
     never rises with more swaps, and 0 swaps is the plain choice. With keep 1 the swaps come
     before the fit; with every start fitted (keep 0), after it, from the fitted starts. Frames
     swapped a few at a time (SWAP_CHUNK) give what one batch gives."""
-    from inseggan_ros import refine
-    from inseggan_ros.refine import _fit_loss, refine_poses
+    from inseggan_ros.runtime import refine
+    from inseggan_ros.runtime.refine import _fit_loss, refine_poses
 
     torch.manual_seed(2)
     G = _rod(length=0.5, radius=0.2)
@@ -434,7 +434,7 @@ def test_instances_swapped_in_from_other_starts(monkeypatch):
         for k, w in zip((1, 0), whole):
             torch.testing.assert_close(refine_poses(G, starts, x, 0, keep=k, swaps=2), w)
         assert not torch.equal(whole[0][0], whole[0][1])  # two different frames were chunked
-    from inseggan_ros.settings import InferenceConfig
+    from inseggan_ros.core.settings import InferenceConfig
 
     InferenceConfig(refine_hypotheses=8, refine_keep=0, refine_swaps=4)
     with pytest.raises(ValueError, match="refine_swaps -1 invalid"):
@@ -442,7 +442,7 @@ def test_instances_swapped_in_from_other_starts(monkeypatch):
 
 
 def test_inference_config_validates_and_reads_old_checkpoints():
-    from inseggan_ros.settings import InferenceConfig, SmoothConfig, apply
+    from inseggan_ros.core.settings import InferenceConfig, SmoothConfig, apply
 
     old = InferenceConfig.from_dict({"refine_steps": 30, "hypotheses": 4})  # pre-smoothing models
     assert old == InferenceConfig(refine_steps=30, refine_hypotheses=4, refine_keep=0,
@@ -478,7 +478,7 @@ def test_settings_have_one_name_as_field_parameter_and_flag():
     flag of the same name; a parameters file and flags apply through that one table."""
     import argparse
 
-    from inseggan_ros import settings
+    from inseggan_ros.core import settings
 
     names = [s.name for s in settings.exposed()]
     assert names == ["refine_steps", "refine_hypotheses", "refine_keep", "refine_swaps",
@@ -505,8 +505,8 @@ def test_a_cards_profile_row_is_what_the_node_runs_with_that_file(tmp_path):
     off by name, so its row and the node agree for every model."""
     import argparse
 
-    from inseggan_ros import settings
-    from inseggan_ros.cli import _also_profiles
+    from inseggan_ros.core import settings
+    from inseggan_ros.cli.main import _also_profiles
 
     config = Path(__file__).resolve().parents[1] / "config"
     partial = tmp_path / "partial.yaml"
@@ -535,9 +535,9 @@ def test_a_parameters_file_applies_over_realtime_for_a_checkpoint_without_settin
 
     from conftest import checkpoint_without_settings
 
-    from inseggan_ros import settings
-    from inseggan_ros.segment import Segmenter
-    from inseggan_ros.selffit import _settings
+    from inseggan_ros.core import settings
+    from inseggan_ros.runtime.segment import Segmenter
+    from inseggan_ros.learning.selffit import _settings
 
     config = Path(__file__).resolve().parents[1] / "config"
     realtime = settings.read_params_file(config / "realtime.yaml")
@@ -563,8 +563,8 @@ def test_a_parameters_file_applies_over_realtime_for_a_checkpoint_without_settin
 def test_a_bfloat16_encoder_gives_the_float32_labels():
     """The shipped cylinder model on bins it draws itself: the encoder in bfloat16 (native or
     not) segments as in float32, up to a few pixels."""
-    from inseggan_ros.precision import native_bfloat16
-    from inseggan_ros.segment import InferenceConfig, Segmenter
+    from inseggan_ros.runtime.precision import native_bfloat16
+    from inseggan_ros.runtime.segment import InferenceConfig, Segmenter
 
     path = Path(__file__).resolve().parents[1] / "models" / "cylinder" / "model.pt"
     seg = Segmenter.from_checkpoint(path, device="cpu")
@@ -591,8 +591,8 @@ def test_a_bfloat16_centre_net_gives_the_float32_labels():
     """The shipped cylinder model's centre votes on bins it draws itself: the net in bfloat16
     (native or not), its last layer in float32, labels as in float32 up to a few pixels; one
     copy of its weights, and float32 the net itself."""
-    from inseggan_ros.precision import CastCentreNet
-    from inseggan_ros.segment import Segmenter
+    from inseggan_ros.runtime.precision import CastCentreNet
+    from inseggan_ros.runtime.segment import Segmenter
 
     path = Path(__file__).resolve().parents[1] / "models" / "cylinder" / "model.pt"
     seg = Segmenter.from_checkpoint(path, device="cpu")
@@ -620,7 +620,7 @@ def test_levenberg_marquardt_refinement_recovers_known_poses():
     """Frames drawn from known poses, fitted from nudged poses: the fitting loss never rises
     from one iteration to the next, and the fit ends far closer to the frames than it began
     (the scene's renders match; poses themselves are ambiguous under the rod's symmetry)."""
-    from inseggan_ros.refine import _lm_fit, _pyramid_features
+    from inseggan_ros.runtime.refine import _lm_fit, _pyramid_features
 
     torch.manual_seed(1)
     G = _rod(length=0.6, radius=0.25)
@@ -645,8 +645,8 @@ def test_transformed_poses_render_the_transformed_image(profile):
     """Under each of the 8 symmetries of the square (mirrored, transposed), the mapped poses
     render the transformed image, and the inverse mapping brings them back: exact for any
     solid of revolution, a rod with a thicker head (monotone radii) too."""
-    from inseggan_ros.model import make_generator
-    from inseggan_ros.symmetry import SYMMETRIES, transform_image, transform_poses
+    from inseggan_ros.runtime.model import make_generator
+    from inseggan_ros.runtime.symmetry import SYMMETRIES, transform_image, transform_poses
 
     cfg = ModelConfig(renderer="spheres", composite="zbuffer", spheres=4, radius_profile=profile,
                       **SMALL)
@@ -664,7 +664,7 @@ def test_transformed_poses_render_the_transformed_image(profile):
 
 
 def test_written_out_adam_matches_torch_adam():
-    from inseggan_ros.refine import _adam_fit
+    from inseggan_ros.runtime.refine import _adam_fit
 
     target = torch.linspace(-1, 1, 12).reshape(2, 6)
     start = torch.zeros(2, 6)
@@ -687,7 +687,7 @@ def test_a_rod_of_more_spheres_can_be_longer_for_its_thickness():
     """`--spheres`: consecutive spheres must overlap, so a rod of K spheres is at most about
     K / 2 times as long as it is thick. The bolt (46 mm long, 10 mm shaft: 4.6) is beyond a
     rod of 6 and within one of 12."""
-    from inseggan_ros.model import SphereGenerator
+    from inseggan_ros.runtime.model import SphereGenerator
 
     def longest(k):
         G = SphereGenerator(ModelConfig(renderer="spheres", composite="zbuffer", spheres=k,
@@ -707,7 +707,7 @@ def test_a_rod_of_more_spheres_can_be_longer_for_its_thickness():
 def test_sphere_renders_at_inference_are_those_of_training(floor_contact):
     """The rod renderer computes in place when no gradient is wanted (inference): the same
     renders as the autograd path, for poses anywhere, at both sizes the pipeline uses."""
-    from inseggan_ros.model import SphereGenerator
+    from inseggan_ros.runtime.model import SphereGenerator
 
     torch.manual_seed(0)
     G = SphereGenerator(ModelConfig(renderer="spheres", composite="zbuffer", spheres=6,

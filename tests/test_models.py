@@ -14,10 +14,12 @@ from pathlib import Path
 import pytest
 from conftest import BAGS, REPO, run_cli
 
-from inseggan_ros import checkpoint, data, evaluate
-from inseggan_ros.metrics import mean_miou
-from inseggan_ros.modelcard import card_markdown, full_resolution_scores, markdown
-from inseggan_ros.segment import Segmenter
+from inseggan_ros.core import checkpoint
+from inseggan_ros.data import datasets as data
+from inseggan_ros.evaluation import evaluate
+from inseggan_ros.core.metrics import mean_miou
+from inseggan_ros.evaluation.modelcard import card_markdown, full_resolution_scores, markdown
+from inseggan_ros.runtime.segment import Segmenter
 
 MODELS = sorted(p.parent for p in (REPO / "models").glob("*/card.json"))
 
@@ -45,7 +47,7 @@ def below_kmeans(card: dict, full_resolution: bool = False) -> bool:
 
 
 def test_the_three_issue_models_and_the_node_default_are_shipped():
-    from inseggan_ros.nodes.segmenter import DEFAULT_MODEL
+    from inseggan_ros.ros.segmenter import DEFAULT_MODEL
 
     names = {p.name for p in MODELS}
     assert {"cylinder", "hex_nut", "wooden_block"} <= names, names
@@ -221,8 +223,8 @@ def test_quality_settings_segment_the_default_models_bag_better_than_kmeans():
     """config/quality.yaml (the node's --params-file for quality; that it sets the node's
     parameters: test_segmenter.py) on the default model's sample bag, every frame at the bag's
     own resolution as the node outputs them, against K-Means on the same frames."""
-    from inseggan_ros import settings
-    from inseggan_ros.nodes.segmenter import DEFAULT_MODEL
+    from inseggan_ros.core import settings
+    from inseggan_ros.ros.segmenter import DEFAULT_MODEL
 
     folder = REPO / "models" / DEFAULT_MODEL
     card = json.loads((folder / "card.json").read_text())

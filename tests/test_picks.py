@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from conftest import installed_executable
 
-from inseggan_ros import picks
-from inseggan_ros.picks import PickConfig, compute_picks
+from inseggan_ros.runtime import picks
+from inseggan_ros.runtime.picks import PickConfig, compute_picks
 
 pytestmark = pytest.mark.serial  # nodes over real DDS: run alone (setup.cfg)
 
@@ -159,8 +159,8 @@ def test_picks_over_dds_match_the_simulator(tmp):
     """bin_replay and the segmenter started side by side with no remap are connected (the
     labels and picks come back), and each frame's PoseArray is what picks.py computes from the
     depth and labels that went over DDS, close to the simulator's truth."""
-    from inseggan_ros.bench_picks import frame_errors, scene_truth
-    from inseggan_ros.image_codec import depth_to_metres, metres_to_depth
+    from tools.bench_picks import frame_errors, scene_truth
+    from inseggan_ros.core.image_codec import depth_to_metres, metres_to_depth
     from inseggan_ros.sim.dataset import scene_seed
     from inseggan_ros.sim.scene import BinSimulator, SceneConfig
 
@@ -254,7 +254,7 @@ def test_bench_truth_tells_a_moved_pick_point_from_a_wrong_plane():
     the point the pick names. Every instance cut to 60 % of its width (a segmentation that
     split it along its length) moves its centroid across a curved side: the first error grows,
     the second, the fitted plane's own, stays that of the true labels."""
-    from inseggan_ros.bench_picks import frame_errors, scene_truth
+    from tools.bench_picks import frame_errors, scene_truth
     from inseggan_ros.sim.dataset import scene_seed
     from inseggan_ros.sim.scene import BinSimulator, SceneConfig
 

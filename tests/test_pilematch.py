@@ -1,4 +1,4 @@
-"""`shape-fit --match-piles` (`inseggan_ros.pilematch`): a disc template's head sized by how
+"""`shape-fit --match-piles` (`learning.pilematch`): a disc template's head sized by how
 simulated piles of its variants look against the user's frames. Frames of a bolt-like part
 with a short, wide head are found so, from discs whose head is long and narrow."""
 import json
@@ -7,14 +7,15 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from inseggan_ros import checkpoint
-from inseggan_ros.data import load_sim_split
-from inseggan_ros.pilematch import PileMatchConfig, disc_model, head_variant, search
-from inseggan_ros.shapefit import ShapeFitConfig, rod_discs
+from inseggan_ros.core import checkpoint
+from inseggan_ros.data.datasets import load_sim_split
+from inseggan_ros.learning.pilematch import PileMatchConfig, disc_model, head_variant, search
+from inseggan_ros.learning.shapefit import ShapeFitConfig, rod_discs
 from inseggan_ros.sim.dataset import DatasetSpec, generate
 from inseggan_ros.sim.scene import SceneConfig
 
 from conftest import REPO
+from inseggan_ros.runtime.model import build_models
 
 ROD = REPO / "models" / "bolt" / "model.pt"  # a rod of 12 spheres with a rounded head
 SHAPE = ShapeFitConfig(pieces=2, walls=8, iterations=0, start="discs")
@@ -60,7 +61,7 @@ def test_the_head_variant_keeps_the_template_s_length_and_its_other_disc():
 
 def test_piles_choose_the_head_the_frames_were_made_of_and_a_search_resumes(tmp_path):
     state = checkpoint.load(ROD)
-    _, rod, _ = checkpoint.build_models(state, ROD)
+    _, rod, _ = build_models(state, ROD)
     discs = rod_discs(rod, 2, 8)
     truth = disc_model(state, SHAPE, head_variant(discs, 0.4, 1.3), tmp_path / "truth.pt", ROD)
     user = tmp_path / "user"  # the user's frames: piles of a short, wide head
@@ -100,7 +101,7 @@ def test_a_uniform_rod_gets_the_flange_its_frames_were_made_of(tmp_path):
     pin = REPO / "models" / "pin_connector" / "model.pt"
     shape = replace(SHAPE, pieces=3)
     state = checkpoint.load(pin)
-    discs = rod_discs(checkpoint.build_models(state, pin)[1], 3, 8)
+    discs = rod_discs(build_models(state, pin)[1], 3, 8)
     truth = disc_model(state, shape, head_variant(discs, 0.25, 1.0, 0.5), tmp_path / "t.pt", pin)
     user = tmp_path / "user"
     x = piles_of(truth, user, 60)
@@ -124,12 +125,12 @@ def test_a_nut_s_piles_choose_a_ring_with_its_hole_over_a_solid_disc(tmp_path):
     frames are piles of such a nut (its hole 0.7 of its width), and the search over solid
     discs and rings keeps the ring of that hole, length and radius; the model written of it
     is one body of six pieces with its hole open."""
-    from inseggan_ros import shape
+    from inseggan_ros.evaluation import shape
 
     nut = REPO / "models" / "hex_nut" / "model.pt"
     ring = ShapeFitConfig(pieces=1, walls=12, iterations=0, start="discs")
     state = checkpoint.load(nut)
-    discs = rod_discs(checkpoint.build_models(state, nut)[1], 1, 6)
+    discs = rod_discs(build_models(state, nut)[1], 1, 6)
     truth = disc_model(state, ring, head_variant(discs, 0.4, 1.1), tmp_path / "t.pt", nut,
                        hole=0.7)
     user = tmp_path / "user"
@@ -150,7 +151,7 @@ def test_a_nut_s_piles_choose_a_ring_with_its_hole_over_a_solid_disc(tmp_path):
     assert wide["best"] == {**best, "stage": "coarse"} and len(wide["coarse"]) == 8
     assert len(wide["skipped"]) == 4 and {v["hole"] for v in wide["skipped"]} == {0.99}
     assert all("wall thicker than" in v["why"] for v in wide["skipped"])
-    _, G, _ = checkpoint.build_models(checkpoint.load(truth), truth)
+    _, G, _ = build_models(checkpoint.load(truth), truth)
     pieces = shape.template_pieces(G)
     (x0, x1, r), = s["discs"]
     axis, wall = [(x0 + x1) / 2, 0.0, 0.0], [(x0 + x1) / 2, 0.0, -0.8 * r]
@@ -167,13 +168,13 @@ def test_a_cone_s_piles_choose_a_frustum_with_its_taper_over_a_straight_disc(tmp
     piles of a disc tapering to 0.2 of its radius, and the search over straight and tapered
     discs keeps that taper; the model written of it is the frustum, one body; the piles'
     part is named so; a taper of two discs, or with a hole, is refused."""
-    from inseggan_ros import shape
-    from inseggan_ros.centres import piles_part
+    from inseggan_ros.evaluation import shape
+    from inseggan_ros.learning.centres import piles_part
 
     cone = REPO / "models" / "cone" / "model.pt"
     one = ShapeFitConfig(pieces=1, walls=8, iterations=0, start="discs")
     state = checkpoint.load(cone)
-    discs = rod_discs(checkpoint.build_models(state, cone)[1], 1, 8)
+    discs = rod_discs(build_models(state, cone)[1], 1, 8)
     truth = disc_model(state, one, head_variant(discs, 0.85, 1.15), tmp_path / "t.pt", cone,
                        taper=0.2)
     user = tmp_path / "user"
@@ -185,7 +186,7 @@ def test_a_cone_s_piles_choose_a_frustum_with_its_taper_over_a_straight_disc(tmp
     assert len(s["coarse"]) == 8 and s["skipped"] == []
     # the search's own model of its best: the frustum, one body, its point at x1
     best = next((tmp_path / "match" / "variants").glob("*_taper0.2_piles32.pt"))
-    _, G, _ = checkpoint.build_models(checkpoint.load(best), best)
+    _, G, _ = build_models(checkpoint.load(best), best)
     corners, real = (t.detach() for t in G.corners())
     (x0, x1, r), = head_variant(discs, s["best"]["length"], s["best"]["radius"])
     ends = corners[0][real[0]]
@@ -194,7 +195,7 @@ def test_a_cone_s_piles_choose_a_frustum_with_its_taper_over_a_straight_disc(tmp
     assert narrow == pytest.approx(0.2 * wide, rel=1e-3)
     assert shape.components(shape.template_pieces(G)) == 1
     # what the loop makes of it (`loop.match_stage`), and what the card says its piles are of
-    from inseggan_ros.shapefit import fit_shape
+    from inseggan_ros.learning.shapefit import fit_shape
     kept = fit_shape(cone, x[:4], tmp_path / "fit", replace(one, taper=s["taper"]),
                      progress=False, discs=s["discs"])["model"]
     sim = tmp_path / "piles"
@@ -212,8 +213,8 @@ def test_a_cone_s_piles_choose_a_frustum_with_its_taper_over_a_straight_disc(tmp
 def test_a_recording_s_piles_are_seen_through_the_camera_its_frames_give(tmp_path):
     """From a bag (depth and CameraInfo, no labels): the variants are piled in the bin and seen
     through the camera estimated from the recording, and cut as its frames are."""
-    from inseggan_ros.loop import BagFrames
-    from inseggan_ros.preprocess import PreprocessConfig
+    from inseggan_ros.learning.loop import BagFrames
+    from inseggan_ros.runtime.preprocess import PreprocessConfig
 
     bag = BagFrames(REPO / "bags" / "bolt_sim", 5)
     prep = PreprocessConfig.from_dict(checkpoint.load(ROD)["preprocess_config"])
@@ -231,12 +232,12 @@ def test_the_card_draws_the_piles_template_beside_the_models_own(tmp_path):
     import shutil
 
     from conftest import run_cli
-    from inseggan_ros.modelcard import card_markdown
+    from inseggan_ros.evaluation.modelcard import card_markdown
 
     folder = shutil.copytree(REPO / "models" / "bolt", tmp_path / "bolt")
     weights = (folder / "model.pt").read_bytes()
     state = checkpoint.load(ROD)
-    discs = rod_discs(checkpoint.build_models(state, ROD)[1], 2, 8)
+    discs = rod_discs(build_models(state, ROD)[1], 2, 8)
     file = disc_model(state, SHAPE, head_variant(discs, 0.5, 1.2), tmp_path / "discs.pt", ROD)
     run_cli("card-shape", folder, "--voxels", "8", "--piles-template", file, check=True)
     card = json.loads((folder / "card.json").read_text())

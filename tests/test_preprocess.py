@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from inseggan_ros.preprocess import (PreprocessConfig, estimate_floor, extend_labels,
-                                     fill_missing, find_bin_roi, labels_to_full, nearest_values,
-                                     prepare, prepare_batch, resize_labels, roi_from_camera)
+from inseggan_ros.runtime.preprocess import (
+    PreprocessConfig, estimate_floor, extend_labels, fill_missing, find_bin_roi, labels_to_full,
+    nearest_values, prepare, prepare_batch, resize_labels, roi_from_camera)
 from inseggan_ros.sim.camera import get_camera
 from inseggan_ros.sim.noise import get_noise
 from inseggan_ros.sim.scene import BinSimulator, SceneConfig
@@ -307,7 +307,8 @@ def test_the_streams_bin_region_is_the_median_of_its_first_frames():
     (seed 0, test scene 4: a region 8 pixels too tall, at the millimetres bin_replay sends);
     the segmenter node's region, the median of the first BIN_FRAMES frames' regions, is the
     bin's even when that scene comes first."""
-    from inseggan_ros.preprocess import BIN_FRAMES, find_bin_roi, median_region, node_defaults
+    from inseggan_ros.runtime.preprocess import (
+        BIN_FRAMES, find_bin_roi, median_region, node_defaults)
     from inseggan_ros.sim.dataset import scene_seed
     from inseggan_ros.sim.scene import BinSimulator, SceneConfig
 

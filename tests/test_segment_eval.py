@@ -6,11 +6,11 @@ import pytest
 import torch
 from conftest import BAGS, run_cli
 
-from inseggan_ros import bags
-from inseggan_ros.checkpoint import CheckpointError
-from inseggan_ros.segment import (Segmenter, calibrate_tau, instance_scores,
-                                  labels_from_renders)
-from inseggan_ros.smoothing import SmoothConfig, smooth_full, smooth_labels
+from inseggan_ros.io import bags
+from inseggan_ros.core.checkpoint import CheckpointError
+from inseggan_ros.runtime.segment import (
+    Segmenter, calibrate_tau, instance_scores, labels_from_renders)
+from inseggan_ros.runtime.smoothing import SmoothConfig, smooth_full, smooth_labels
 
 
 def test_zbuffer_labels_and_scores_by_hand():
@@ -162,7 +162,7 @@ def test_bad_model_files_give_one_clear_error(tmp):
 def test_a_model_is_named_by_shipped_name_folder_or_file(tmp):
     """`--model` and the node's model_path: a shipped name, a model folder (its model.pt, as
     `export` and `loop` write them) or a checkpoint file; a folder without one is no model."""
-    from inseggan_ros.paths import resolve_model
+    from inseggan_ros.core.paths import resolve_model
 
     shipped = resolve_model("cylinder")
     assert shipped.name == "model.pt" and shipped.parent.name == "cylinder"
@@ -176,7 +176,7 @@ def test_a_model_is_named_by_shipped_name_folder_or_file(tmp):
 def test_two_hard_subsets_are_reported():
     """The paper's hard subset (K-Means < 0.6) and the second one (Felzenszwalb < 0.8), each
     averaged over its own frames, and the table shows both."""
-    from inseggan_ros import evaluate
+    from inseggan_ros.evaluation import evaluate
 
     results = {"inseggan": {"scores": np.array([0.9, 0.5, 0.7]), "seconds": 0.3},
                "kmeans": {"scores": np.array([0.5, 0.7, 0.55]), "seconds": 0.1},

@@ -9,10 +9,11 @@ import pytest
 from conftest import (BAGS, REPO, checkpoint_without_settings, get_params,
                       installed_executable, set_params)
 
-from inseggan_ros import bags, image_codec
-from inseggan_ros.baselines import kmeans
-from inseggan_ros.metrics import mean_miou, miou_batch
-from inseggan_ros.nodes.segmenter import DEFAULT_MODEL
+from inseggan_ros.io import bags
+from inseggan_ros.core import image_codec
+from inseggan_ros.evaluation.baselines import kmeans
+from inseggan_ros.core.metrics import mean_miou, miou_batch
+from inseggan_ros.ros.segmenter import DEFAULT_MODEL
 from test_bin_replay import start_replay, stop
 
 pytestmark = pytest.mark.serial  # nodes over real DDS: run alone (setup.cfg)
@@ -161,7 +162,7 @@ def _frame(arr, encoding, step=None, data=None, width=None, height=None):
 
 
 def test_bad_frames_are_counted_and_skipped_and_the_node_keeps_serving(tmp):
-    from inseggan_ros.bags import read_all
+    from inseggan_ros.io.bags import read_all
     from conftest import BAGS
 
     good = [f.depth for f in read_all(BAGS / "cylinder_sim")[:2]]  # 224 x 224 16UC1
@@ -285,7 +286,7 @@ def test_parameter_changes_are_validated_at_run_time():
 def test_shipped_parameter_files_set_the_segmenter(profile):
     """config/<profile>.yaml, as installed, applies to the segmenter in any namespace (its
     `/**/segmenter` section), and a -p after it still wins."""
-    from inseggan_ros.settings import read_params_file
+    from inseggan_ros.core.settings import read_params_file
 
     path = shipped_params_file(profile)
     wanted = read_params_file(path)
@@ -309,8 +310,8 @@ def test_quality_file_keeps_the_models_own_vote_and_a_training_checkpoint_runs_r
     keeps its own (a vote at 160, not realtime.yaml's 50, and its split off). A training
     checkpoint stores no settings: the node runs it with realtime.yaml's, and the same file
     applies over those (the vote and the split stay on)."""
-    from inseggan_ros import checkpoint
-    from inseggan_ros.settings import read_params_file
+    from inseggan_ros.core import checkpoint
+    from inseggan_ros.core.settings import read_params_file
 
     quality = read_params_file(shipped_params_file("quality"))
     realtime = read_params_file(shipped_params_file("realtime"))

@@ -7,11 +7,12 @@ import numpy as np
 import pytest
 from conftest import run_cli, zbuffer_settings
 
-from inseggan_ros import checkpoint, data
-from inseggan_ros.metrics import mean_miou, miou_batch
-from inseggan_ros.modelcard import distill_record
-from inseggan_ros.segment import Segmenter
-from inseggan_ros.selffit import SelfFitConfig, self_labels
+from inseggan_ros.core import checkpoint
+from inseggan_ros.data import datasets as data
+from inseggan_ros.core.metrics import mean_miou, miou_batch
+from inseggan_ros.evaluation.modelcard import distill_record
+from inseggan_ros.runtime.segment import Segmenter
+from inseggan_ros.learning.selffit import SelfFitConfig, self_labels
 
 CONE = Path(__file__).resolve().parents[1] / "models" / "cone" / "model.pt"
 

@@ -9,11 +9,12 @@ import pytest
 import torch
 from conftest import run_cli
 
-from inseggan_ros import checkpoint
-from inseggan_ros.model import ConvexGenerator
-from inseggan_ros.segment import Segmenter
-from inseggan_ros.shapefit import (ShapeFitConfig, convex_from_rod, fit_shape, hold_out,
-                                   rod_box, rod_discs)
+from inseggan_ros.core import checkpoint
+from inseggan_ros.runtime.model import ConvexGenerator
+from inseggan_ros.runtime.segment import Segmenter
+from inseggan_ros.learning.shapefit import (
+    ShapeFitConfig, convex_from_rod, fit_shape, hold_out, rod_box, rod_discs)
+from inseggan_ros.runtime.model import build_models
 
 # the wooden block's rod model as the GAN left it (no label of any kind): test_loop's
 MODEL = Path(__file__).resolve().parent / "data" / "wooden_block_unsupervised.pt"
@@ -21,7 +22,7 @@ MODEL = Path(__file__).resolve().parent / "data" / "wooden_block_unsupervised.pt
 
 def test_the_convex_start_is_the_rods_bounding_box_with_its_encoder():
     state = checkpoint.load(MODEL)
-    _, rod, E = checkpoint.build_models(state, MODEL)
+    _, rod, E = build_models(state, MODEL)
     new, G, E2 = convex_from_rod(state, ShapeFitConfig())
     assert isinstance(G, ConvexGenerator) and new["model_config"]["renderer"] == "convex"
     c, r = (t.detach() for t in rod.spheres())
@@ -40,7 +41,7 @@ def test_the_convex_start_is_the_rods_bounding_box_with_its_encoder():
 
 def _stepped_rod(head: float = 0.2, shaft: float = 0.1):
     """A rod of 12 spheres: the first three `head` wide, the rest `shaft` (a bolt's profile)."""
-    from inseggan_ros.model import ModelConfig, SphereGenerator
+    from inseggan_ros.runtime.model import ModelConfig, SphereGenerator
 
     rod = SphereGenerator(ModelConfig(renderer="spheres", composite="zbuffer", spheres=12,
                                       radius_profile="free"))
@@ -55,8 +56,8 @@ def test_discs_follow_a_rods_step_and_make_one_body_of_those_sizes():
     """A rod with a head: two discs cut near the head's end, the head's the wider; built as a
     convex template, each piece spans its segment along the axis with walls at its radius,
     and the whole is one connected body."""
-    from inseggan_ros.model import CONVEX_MIN_EXTENT, ModelConfig
-    from inseggan_ros.shape import components, template_pieces
+    from inseggan_ros.runtime.model import CONVEX_MIN_EXTENT, ModelConfig
+    from inseggan_ros.evaluation.shape import components, template_pieces
 
     rod = _stepped_rod()
     c, r = (t.detach() for t in rod.spheres())
@@ -100,8 +101,8 @@ def test_a_tapered_disc_is_a_frustum_of_its_radii_and_the_rest_is_refused():
     piece's least extent, and a taper of a box or a ring are refused by name."""
     import math
 
-    from inseggan_ros.model import CONVEX_MIN_EXTENT, ModelConfig, taper_slope
-    from inseggan_ros.shape import components, occupancy, template_pieces
+    from inseggan_ros.runtime.model import CONVEX_MIN_EXTENT, ModelConfig, taper_slope
+    from inseggan_ros.evaluation.shape import components, occupancy, template_pieces
 
     G = ConvexGenerator(ModelConfig(renderer="convex", composite="zbuffer", pieces=1, walls=8,
                                     floor_contact=True))
@@ -142,9 +143,9 @@ def test_a_flange_between_two_shafts_is_built_as_thin_as_its_disc():
     the flange reaches back to the first shaft's centre at its own width (4 times as long as
     its disc); `piece_order` builds it first, so each shaft reaches back into a piece no
     narrower and the body is the discs themselves, still one piece."""
-    from inseggan_ros.model import CONVEX_MIN_EXTENT, ModelConfig
-    from inseggan_ros.shape import components, template_pieces
-    from inseggan_ros.shapefit import piece_order, spill
+    from inseggan_ros.runtime.model import CONVEX_MIN_EXTENT, ModelConfig
+    from inseggan_ros.evaluation.shape import components, template_pieces
+    from inseggan_ros.learning.shapefit import piece_order, spill
 
     discs = [(-0.4, -0.05, 0.1), (-0.05, 0.05, 0.23), (0.05, 0.4, 0.1)]
     order = piece_order(discs)
@@ -176,7 +177,7 @@ def test_a_disc_start_renders_as_its_rod_did_for_the_rods_poses():
     rod's axis, so that the rod's encoder and pose decoder place it where they placed the rod:
     the same codes give renders that cover nearly the same pixels."""
     state = checkpoint.load(MODEL)
-    _, rod, _ = checkpoint.build_models(state, MODEL)
+    _, rod, _ = build_models(state, MODEL)
     _, G, _ = convex_from_rod(state, ShapeFitConfig(pieces=2, walls=8, start="discs"))
     z = torch.randn(4, 3, rod.cfg.latent_dim, generator=torch.Generator().manual_seed(0))
     with torch.no_grad():
@@ -209,7 +210,7 @@ def test_shape_fit_with_no_iterations_writes_the_discs_a_simulator_drops(tmp):
     s = json.loads((out / "summary.json").read_text())
     assert s["iterations"] == 0 and s["model"] == str(out / "best.pt")
     assert s["best"]["iteration"] == 0 and s["best"]["recon_l1"] > 0
-    _, G, _ = checkpoint.build_models(checkpoint.load(out / "best.pt"))
+    _, G, _ = build_models(checkpoint.load(out / "best.pt"))
     _, start, _ = convex_from_rod(checkpoint.load(MODEL),
                                   ShapeFitConfig(pieces=2, walls=8, start="discs"))
     for a, b in zip(G.halfspaces(), start.halfspaces()):
@@ -217,10 +218,10 @@ def test_shape_fit_with_no_iterations_writes_the_discs_a_simulator_drops(tmp):
     piles = tmp / "piles"
     run_cli("simulate", "--quiet", "--object", out / "best.pt", "--count", "2", "--split",
             "2,0,0", "--seed", "5", "--workers", "1", "--out", piles, check=True, timeout=300)
-    from inseggan_ros.data import load_sim_split
+    from inseggan_ros.data.datasets import load_sim_split
 
     assert int(load_sim_split(piles, "train")["labels"].max()) >= 1
-    from inseggan_ros.centres import piles_part
+    from inseggan_ros.learning.centres import piles_part
 
     # what a centre-vote net taught on them records (its card names the piles' part)
     assert piles_part(piles) == ("the learned rod's profile as 2 flat-ended discs, not fitted, "
@@ -235,8 +236,8 @@ def test_a_ring_of_six_sectors_is_one_hexagonal_nut_with_its_hole_open():
     thickness, apothem and hole (volumetric IoU on a voxel grid), one connected body; a
     wall too thin for a sector to hold its neighbour's centre is refused, as is a hole on a
     template that is not one disc of 12 walls."""
-    from inseggan_ros import shape
-    from inseggan_ros.model import ModelConfig
+    from inseggan_ros.evaluation import shape
+    from inseggan_ros.runtime.model import ModelConfig
 
     G = ConvexGenerator(ModelConfig(renderer="convex", composite="zbuffer", pieces=6,
                                     walls=12, floor_contact=True))
@@ -278,7 +279,7 @@ def test_a_short_recording_still_holds_frames_out_to_keep_the_best_fit_by():
 
 
 def test_only_a_rod_model_is_a_starting_point():
-    from inseggan_ros.model import ModelConfig
+    from inseggan_ros.runtime.model import ModelConfig
 
     convex, _, _ = convex_from_rod(checkpoint.load(MODEL), ShapeFitConfig())
     G = ConvexGenerator(ModelConfig.from_dict(convex["model_config"]))
@@ -308,7 +309,7 @@ def test_a_short_fit_moves_the_box_towards_the_true_block_and_is_not_redone(tmp)
     # a model the product takes: it loads, and segments a frame
     seg = Segmenter.from_checkpoint(out / "best.pt", device="cpu")
     assert isinstance(seg.G, ConvexGenerator)
-    from inseggan_ros.data import load_sim_split
+    from inseggan_ros.data.datasets import load_sim_split
 
     frame = load_sim_split(user, "val", limit=1)
     with torch.no_grad():
@@ -327,7 +328,7 @@ def test_a_killed_fit_resumes_where_it_stopped_and_ends_as_an_unbroken_one(tmp):
     """Killed after its first checkpoint (here: the report raising at the second evaluation),
     a fit started again continues from last.pt and ends with the very weights of a run that
     was never stopped (the optimiser's state and the batch draws are restored too)."""
-    _, rod, _ = checkpoint.build_models(checkpoint.load(MODEL), MODEL)
+    _, rod, _ = build_models(checkpoint.load(MODEL), MODEL)
     with torch.no_grad():  # frames the rod itself draws: something to reconstruct
         z = torch.randn(12, rod.cfg.n_instances, rod.cfg.latent_dim,
                         generator=torch.Generator().manual_seed(0))

@@ -7,13 +7,15 @@ import pytest
 import torch
 from conftest import run_cli
 
-from inseggan_ros import checkpoint, sizing
-from inseggan_ros.data import load_sim_split
-from inseggan_ros.loop import (AUTO_SIZE_ROUNDS, LoopConfig, resume_plan, run, size_plan,
-                               size_stage)
-from inseggan_ros.paths import resolve_model
-from inseggan_ros.segment import Segmenter
+from inseggan_ros.core import checkpoint
+from inseggan_ros.learning import sizing
+from inseggan_ros.data.datasets import load_sim_split
+from inseggan_ros.learning.loop import (
+    AUTO_SIZE_ROUNDS, LoopConfig, resume_plan, run, size_plan, size_stage)
+from inseggan_ros.core.paths import resolve_model
+from inseggan_ros.runtime.segment import Segmenter
 from inseggan_ros.sim.learned import model_camera, template_scale
+from inseggan_ros.runtime.model import build_models
 
 CYLINDER = resolve_model("cylinder")  # the shipped model
 DIAMETER = 0.024  # the simulator's cylinder: 24 mm x 40 mm
@@ -43,11 +45,11 @@ def test_the_parts_thickness_is_read_off_unlabelled_frames(cylinders):
 
 def test_a_rod_resized_to_a_thickness_rests_on_the_floor_at_that_height():
     state = checkpoint.load(CYLINDER)
-    G = checkpoint.build_models(state, CYLINDER)[1]
+    G = build_models(state, CYLINDER)[1]
     metres = template_scale(state, G, model_camera(CYLINDER, state))
     before = sizing.rod_dimensions_mm(G, metres)
     s = sizing.size_to_thickness(state, G, float(metres[2]), 0.020)
-    G2 = checkpoint.build_models(state, CYLINDER)[1]
+    G2 = build_models(state, CYLINDER)[1]
     after = sizing.rod_dimensions_mm(G2, metres)
     assert after[2] == pytest.approx(20.0, rel=1e-4)  # its thickest sphere 20 mm high
     assert after[0] / after[1] == pytest.approx(before[0] / before[1], rel=1e-4)  # same shape
@@ -60,7 +62,7 @@ def test_a_rod_resized_to_a_thickness_rests_on_the_floor_at_that_height():
         centres = G.spheres()[0]
     span = float(centres[-1, 0] - centres[0, 0])
     s_thin = sizing.size_to_thickness(state, G, float(metres[2]), 0.010, keep_length=True)
-    G3 = checkpoint.build_models(state, CYLINDER)[1]
+    G3 = build_models(state, CYLINDER)[1]
     thin = sizing.rod_dimensions_mm(G3, metres)
     assert thin[2] == pytest.approx(10.0, rel=1e-4)
     assert s_thin == pytest.approx(10.0 / before[2], rel=1e-4)
@@ -74,11 +76,11 @@ def test_a_rod_resized_to_a_thickness_rests_on_the_floor_at_that_height():
         LoopConfig(size_by_thickness="off", size_keep_length=True)
     convex = checkpoint.load(resolve_model("wooden_block"))
     with pytest.raises(ValueError, match="only a rod of spheres"):
-        sizing.scaled(checkpoint.build_models(convex)[1], 1.1)
+        sizing.scaled(build_models(convex)[1], 1.1)
 
 
 def test_a_rod_made_longer_and_thinner_keeps_its_profile_on_more_spheres():
-    G = checkpoint.build_models(checkpoint.load(resolve_model("bolt")), "bolt")[1]  # 12 spheres
+    G = build_models(checkpoint.load(resolve_model("bolt")), "bolt")[1]  # 12 spheres
     with torch.no_grad():
         centres, radii = G.spheres()
         span = float(centres[-1, 0] - centres[0, 0])

@@ -6,11 +6,12 @@ import numpy as np
 import torch
 from conftest import BAGS
 
-from inseggan_ros import bags, evaluate
-from inseggan_ros.metrics import mean_miou, miou_batch
-from inseggan_ros.segment import Segmenter
-from inseggan_ros.superpixels import (depth_superpixels, frame_segments, split_frame,
-                                      split_labels, vote_frame, vote_labels)
+from inseggan_ros.io import bags
+from inseggan_ros.evaluation import evaluate
+from inseggan_ros.core.metrics import mean_miou, miou_batch
+from inseggan_ros.runtime.segment import Segmenter
+from inseggan_ros.runtime.superpixels import (
+    depth_superpixels, frame_segments, split_frame, split_labels, vote_frame, vote_labels)
 
 
 def two_blocks():

@@ -8,9 +8,9 @@ import pytest
 import torch
 from scipy import ndimage
 
-from inseggan_ros import shape
-from inseggan_ros import template as T
-from inseggan_ros.model import ConvexGenerator, ModelConfig, rodrigues
+from inseggan_ros.evaluation import shape
+from inseggan_ros.runtime import template as T
+from inseggan_ros.runtime.model import ConvexGenerator, ModelConfig, rodrigues
 
 SIZE = 64
 PX = (torch.arange(SIZE) + 0.5) / SIZE * 2 - 1
@@ -235,7 +235,7 @@ def test_a_rod_of_spheres_as_pieces_holds_the_spheres_and_little_else():
     """The rod's pieces (each sphere as the polytope of its tangent planes) contain every point
     of the exact union of spheres and exceed it by at most a thin shell; a rod of equal spheres
     as long as the cylinder part aligns onto it with the IoU of a capsule in a cylinder."""
-    from inseggan_ros.model import SphereGenerator
+    from inseggan_ros.runtime.model import SphereGenerator
 
     G = SphereGenerator(ModelConfig(renderer="spheres", composite="zbuffer", spheres=6))
     with torch.no_grad():
@@ -262,7 +262,7 @@ def test_a_rod_of_spheres_as_pieces_holds_the_spheres_and_little_else():
 
 
 def test_scale_from_the_data():
-    from inseggan_ros.preprocess import PreprocessConfig, roi_from_camera
+    from inseggan_ros.runtime.preprocess import PreprocessConfig, roi_from_camera
     from inseggan_ros.sim.camera import get_camera
     from inseggan_ros.sim.scene import BinConfig
 
@@ -282,12 +282,13 @@ def test_short_training_run_moves_a_box_template_towards_the_true_block(tmp):
     dimension error 0.48 -> 0.33, IoU 0.15 -> 0.24 after 80 iterations (35 s on a busy core)."""
     from conftest import run_cli
 
-    from inseggan_ros import data as data_mod
-    from inseggan_ros.checkpoint import build_models, load
-    from inseggan_ros.model import make_generator
+    from inseggan_ros.data import datasets as data_mod
+    from inseggan_ros.core.checkpoint import load
+    from inseggan_ros.runtime.model import build_models
+    from inseggan_ros.runtime.model import make_generator
     from inseggan_ros.sim.dataset import load_meta
     from inseggan_ros.sim.scene import SceneConfig
-    from inseggan_ros.train import get_config, train
+    from inseggan_ros.learning.train import get_config, train
 
     root = tmp / "blocks"
     run_cli("simulate", "--object", "wooden_block", "--instances", "3", "--count", "60",
@@ -323,8 +324,8 @@ def test_mirrored_and_transposed_starting_poses_render_the_mirrored_image():
     """`symmetry.map_rotations` (the convex template's test-time augmentation): the pose it
     maps a box's pose to renders exactly the mirrored or transposed render, for all 8
     symmetries of the square; and `matrix_to_rotvec` inverts `rodrigues` up to pi."""
-    from inseggan_ros.symmetry import (SYMMETRIES, map_rotations, matrix_to_rotvec,
-                                       symmetry_matrix, transform_image)
+    from inseggan_ros.runtime.symmetry import (
+        SYMMETRIES, map_rotations, matrix_to_rotvec, symmetry_matrix, transform_image)
 
     gen = torch.Generator().manual_seed(0)
     w = torch.randn(500, 3, generator=gen)

@@ -7,9 +7,9 @@ import cv2
 import numpy as np
 import pytest
 
-from inseggan_ros.preprocess import (PreprocessConfig, estimate_floor, find_bin,
-                                     fit_floor_plane, plane_depth, polygon_from_camera, prepare,
-                                     roi_from_camera)
+from inseggan_ros.runtime.preprocess import (
+    PreprocessConfig, estimate_floor, find_bin, fit_floor_plane, plane_depth, polygon_from_camera,
+    prepare, roi_from_camera)
 from inseggan_ros.sim.camera import CameraConfig, get_camera
 from inseggan_ros.sim.noise import get_noise
 from inseggan_ros.sim.scene import BinSimulator, SceneConfig

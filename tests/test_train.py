@@ -11,8 +11,8 @@ import pytest
 import torch
 from conftest import installed_executable, run_cli
 
-from inseggan_ros import checkpoint
-from inseggan_ros.segment import Segmenter
+from inseggan_ros.core import checkpoint
+from inseggan_ros.runtime.segment import Segmenter
 
 # the shipped models' config (an explicit template), 8 wide: well conditioned, so that 120
 # iterations improve the reconstruction on any CPU (the learned renderer at this size barely moved:
@@ -98,7 +98,7 @@ def test_ddp_two_processes_gloo_identical_weights(tmp, tiny_data):
     torchrun = os.path.join(os.path.dirname(sys.executable), "torchrun")
     p = subprocess.run([torchrun, "--nproc_per_node", "2",
                         "--master_port", str(29500 + os.getpid() % 500),
-                        "-m", "inseggan_ros.cli", "train", "--data", str(tiny_data), "--out",
+                        "-m", "inseggan_ros.cli.main", "train", "--data", str(tiny_data), "--out",
                         str(out), "--iterations", "6", "--eval-every", "6", *TINY],
                        capture_output=True, text=True, timeout=600, env=env)
     assert p.returncode == 0, p.stderr[-3000:]
@@ -128,8 +128,8 @@ def test_best_checkpoint_is_the_best_validation_even_the_starting_point(tmp, tin
     """best.pt holds the weights of the best validation in the log. A run whose starting point is
     never beaten (learning rates too small to move a weight, as a run that does not learn) keeps
     its starting weights, not its last ones under the starting point's score and tau."""
-    from inseggan_ros.data import load_sim_training
-    from inseggan_ros.train import get_config, train
+    from inseggan_ros.data.datasets import load_sim_training
+    from inseggan_ros.learning.train import get_config, train
 
     tr, val, prep, info = load_sim_training(tiny_data, None, None, progress=False)
     cfg = get_config("cpu_spheres", nf=8, batch_size=8, n_instances=5, max_iterations=3,

@@ -10,10 +10,15 @@ import pytest
 import torch
 from conftest import BAGS, REPO, run_cli, zbuffer_settings
 
-from inseggan_ros import bags, checkpoint, data, evaluate, selfcheck
-from inseggan_ros.metrics import mean_miou
-from inseggan_ros.modelcard import markdown, sample_bag_scores
-from inseggan_ros.segment import Segmenter
+from inseggan_ros.io import bags
+from inseggan_ros.core import checkpoint
+from inseggan_ros.data import datasets as data
+from inseggan_ros.evaluation import evaluate
+from inseggan_ros.evaluation import selfcheck
+from inseggan_ros.core.metrics import mean_miou
+from inseggan_ros.evaluation.modelcard import markdown, sample_bag_scores
+from inseggan_ros.runtime.segment import Segmenter
+from inseggan_ros.runtime.model import build_models
 
 MODEL = REPO / "models" / "cylinder" / "model.pt"
 SAMPLE_BAG = BAGS / "cylinder_sim"
@@ -51,7 +56,8 @@ def _miou(seg, frames) -> float:
 
 
 def test_tau_from_frames_lands_near_the_labelled_calibration():
-    from inseggan_ros.segment import TAU_GRID, calibrate_tau  # labelled calibration, its grid
+    from inseggan_ros.runtime.segment import (  # labelled calibration, its grid
+        TAU_GRID, calibrate_tau)
 
     seg = Segmenter.from_checkpoint(MODEL, device="cpu")
     seg.inference = zbuffer_settings(seg.inference)  # tau is for the z-buffer's labels
@@ -86,9 +92,9 @@ def test_tau_from_frames_rejects_empty_bins():
 def test_bag_validation_calibrates_tau_from_the_frames():
     """What `train --bag` validates with: tau from the unlabelled frames, near the labelled
     tau's quality, and a foreground IoU that a trained model raises over an untrained one."""
-    from inseggan_ros.model import ModelConfig
-    from inseggan_ros.segment import InferenceConfig
-    from inseggan_ros.train import TrainConfig, evaluate as validate, make_run
+    from inseggan_ros.runtime.model import ModelConfig
+    from inseggan_ros.runtime.segment import InferenceConfig
+    from inseggan_ros.learning.train import TrainConfig, evaluate as validate, make_run
 
     state = checkpoint.load(MODEL)
     cfg = TrainConfig.from_dict(state["train_config"])
@@ -237,5 +243,5 @@ def test_a_model_trained_on_a_bag_records_where_its_template_is_in_metres(tmp, s
     assert view["floor_depth"] == pytest.approx(true.mount_height, abs=0.002)
     x0, y0, x1, y1 = view["roi"]
     assert 80 < x1 - x0 < 130 and 80 < y1 - y0 < 130  # the 224 x 224 view's bin: about 108 px
-    scale = template_scale(state, checkpoint.build_models(state)[1], cam)
+    scale = template_scale(state, build_models(state)[1], cam)
     assert scale[0] == pytest.approx((x1 - x0) * view["floor_depth"] / cam.fx / 2, rel=0.2)

@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from conftest import run_cli
-from inseggan_ros import bags
-from inseggan_ros.preprocess import roi_from_camera
+from inseggan_ros.io import bags
+from inseggan_ros.runtime.preprocess import roi_from_camera
 from inseggan_ros.sim.camera import CameraConfig, get_camera
 from inseggan_ros.sim.noise import get_noise
 from inseggan_ros.sim.scene import BinConfig, BinSimulator, SceneConfig

@@ -5,8 +5,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from inseggan_ros import vote_scale
-from inseggan_ros.metrics import mean_miou, miou_batch
+from inseggan_ros.evaluation import vote_scale
+from inseggan_ros.core.metrics import mean_miou, miou_batch
 
 
 def test_each_scale_is_scored_as_the_segmenter_votes_and_the_best_is_kept(cylinder_bag):
@@ -47,7 +47,7 @@ def test_nothing_is_chosen_with_the_vote_off_and_bad_scales_are_named(cylinder_b
 
 
 def test_the_loop_takes_its_scales_from_its_config_and_refuses_bad_ones():
-    from inseggan_ros.loop import LoopConfig
+    from inseggan_ros.learning.loop import LoopConfig
 
     assert LoopConfig().vote_scales == vote_scale.SCALES
     assert LoopConfig(vote_scales=()).vote_scales == ()  # the export settings' own scale

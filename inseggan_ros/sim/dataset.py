@@ -25,7 +25,7 @@ from typing import Iterator
 import numpy as np
 from tqdm import tqdm
 
-from .scene import BinSimulator, Scene, SceneConfig
+from inseggan_ros.sim.scene import BinSimulator, Scene, SceneConfig
 
 FORMAT = "inseggan-sim-v1"
 SPLITS = ("train", "val", "test")
@@ -157,7 +157,7 @@ def generate(spec: DatasetSpec, out: Path, workers: int = 1, bags: bool = False,
 def write_split_bag(root: Path, split: str, bag_path: Path, camera, encoding: str = "16UC1",
                     progress: bool = False) -> int:
     """Write the scenes of one split as a rosbag2 (depth, camera info, ground-truth labels)."""
-    from .. import bags
+    from inseggan_ros.io import bags
 
     info = bags.CameraInfo.from_camera(camera)
     files = sorted((Path(root) / split).glob("shard-*.npz"))

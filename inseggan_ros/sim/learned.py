@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .objects import Mesh, ObjectSpec
+from inseggan_ros.sim.objects import Mesh, ObjectSpec
 
 SPHERE_POINTS = 256  # points on each sphere of a rod template: its hull is within 1 % of it
 DENSITY = 1000.0  # kg / m^3: the mass does not change how parts come to rest, only how fast
@@ -60,7 +60,7 @@ def model_camera(path: Path, state: dict | None = None):
     records, else its training data set's; None if none is known."""
     import json
 
-    from .camera import CameraConfig
+    from inseggan_ros.sim.camera import CameraConfig
 
     card = path.parent / "card.json" if path.suffix == ".pt" else path / "card.json"
     card = json.loads(card.read_text()) if card.is_file() else {}
@@ -78,7 +78,7 @@ def template_pieces_units(G) -> list[np.ndarray]:
     in its own frame with the rendering's height offset (a rod's `lift`) applied: (N_i, 3)."""
     import torch
 
-    from ..model import ConvexGenerator, SphereGenerator
+    from inseggan_ros.runtime.model import ConvexGenerator, SphereGenerator
 
     with torch.no_grad():
         if isinstance(G, SphereGenerator):
@@ -86,7 +86,7 @@ def template_pieces_units(G) -> list[np.ndarray]:
             unit = _fibonacci_sphere(SPHERE_POINTS)
             return [c + r * unit for c, r in zip(centres, radii)]
         if isinstance(G, ConvexGenerator):
-            from ..shape import template_pieces, vertices
+            from inseggan_ros.runtime.pieces import template_pieces, vertices
 
             return [vertices([piece]) for piece in template_pieces(G)]
     raise ValueError(f"renderer {G.cfg.renderer!r} has no explicit template to export; valid: "
@@ -96,7 +96,7 @@ def template_pieces_units(G) -> list[np.ndarray]:
 def template_scale(state: dict, G, camera=None) -> np.ndarray:
     """Template units -> metres (3,): `shape.metres_per_unit` with the crop's pixel size at the
     depth of the template's middle (see the module docstring)."""
-    from ..shape import metres_per_unit
+    from inseggan_ros.runtime.pieces import metres_per_unit
 
     prep = dict(state["preprocess_config"])
     view = (state.get("data") or {}).get("view")  # a bag's: the bin found in every frame
@@ -116,7 +116,8 @@ def template_object(path, camera=None) -> ObjectSpec:
     `camera`: the training camera (`sim.camera.CameraConfig`) for the scale; default: the
     model card's, else the crop is taken to be as wide as its height range (see
     `shape.metres_per_unit`)."""
-    from ..checkpoint import build_models, load
+    from inseggan_ros.core.checkpoint import load
+    from inseggan_ros.runtime.model import build_models
 
     path = Path(path)
     file = path / "model.pt" if path.is_dir() else path
@@ -140,7 +141,8 @@ def template_object(path, camera=None) -> ObjectSpec:
 def template_origin(path, camera=None) -> np.ndarray:
     """Where the template frame's origin lies in the exported body's frame, metres (3,): the
     body frame is the template's, shifted to the centroid of its corners."""
-    from ..checkpoint import build_models, load
+    from inseggan_ros.core.checkpoint import load
+    from inseggan_ros.runtime.model import build_models
 
     path = Path(path)
     file = path / "model.pt" if path.is_dir() else path

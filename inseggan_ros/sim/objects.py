@@ -187,7 +187,7 @@ def get_object(name: str) -> ObjectSpec:
     .pt checkpoint: `sim.learned`)."""
     if name in OBJECTS:
         return OBJECTS[name]
-    from .learned import cached_template_object, is_model_path
+    from inseggan_ros.sim.learned import cached_template_object, is_model_path
 
     if is_model_path(name):
         return cached_template_object(name)

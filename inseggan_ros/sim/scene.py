@@ -16,9 +16,9 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 from scipy.spatial import ConvexHull
 
-from .camera import CameraConfig
-from .noise import NoiseConfig, apply_noise
-from .objects import ObjectSpec, get_object
+from inseggan_ros.sim.camera import CameraConfig
+from inseggan_ros.sim.noise import NoiseConfig, apply_noise
+from inseggan_ros.sim.objects import ObjectSpec, get_object
 
 
 DROPS = 5  # tries to drop each part into the bin before the pile is started again

@@ -29,8 +29,8 @@ import math
 import cv2
 import numpy as np
 
-from .. import preprocess
-from .camera import CameraConfig
+from inseggan_ros.runtime import preprocess
+from inseggan_ros.sim.camera import CameraConfig
 
 MAX_TILT = 45.0  # degrees: what CameraConfig takes
 ROLL_MIN_TILT = 0.5  # degrees: below it the floor does not show which way the camera leans
@@ -265,7 +265,7 @@ def camera_from_bag(path, depth_topic: str | None = None, frames: int = 30
     """`estimate_camera` on the first `frames` depth frames of a bag and the CameraInfo beside
     them -> (camera, details, one line saying what was found). Raises ValueError when the bag
     has no CameraInfo (no intrinsics to simulate with)."""
-    from ..bags import read_frames
+    from inseggan_ros.io.bags import read_frames
 
     got = list(read_frames(path, depth_topic=depth_topic, limit=frames))
     info = next((f.camera_info for f in reversed(got) if f.camera_info is not None), None)

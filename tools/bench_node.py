@@ -1,0 +1,248 @@
+"""Segmenter node benchmark (`make bench-node`): latency, throughput and memory, measured.
+
+The segmenter runs as its own process (as `ros2 run` starts it), on the shipped model; this
+process publishes 1280 x 720 16UC1 depth frames (simulated RealSense-like bins with sensor noise,
+a few distinct frames in turn) at 30 Hz for 60 s, and subscribes to the labels. Printed:
+  * node latency, message received -> labels published, measured inside the node (p50, p99 over
+    every frame; the node's own /diagnostics), with the share spent in inference alone and in
+    message conversion;
+  * end-to-end latency as a subscriber sees it (depth stamp -> labels received);
+  * frames sent, received by the node, answered, and dropped (keep-last 1: a frame that arrives
+    while the node is busy replaces the waiting one);
+  * the node's peak resident memory (VmHWM of its process);
+  * for reference, in this process on the same frames: preprocessing + inference alone, and
+    decoding/encoding the Image messages alone.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from inseggan_ros.core import settings
+
+
+def _vm_hwm_mb(pid: int) -> float:
+    with open(f"/proc/{pid}/status") as f:
+        for line in f:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def simulated_frames(count: int, width: int, height: int) -> list[np.ndarray]:
+    from inseggan_ros.core.image_codec import metres_to_depth
+    from inseggan_ros.sim.camera import get_camera
+    from inseggan_ros.sim.dataset import scene_seed
+    from inseggan_ros.sim.noise import get_noise
+    from inseggan_ros.sim.scene import BinSimulator, SceneConfig
+
+    cfg = SceneConfig(object="cylinder", camera=get_camera("realsense_d435", width, height),
+                      noise=get_noise("realsense"))
+    with BinSimulator(cfg) as sim:
+        return [metres_to_depth(sim.render(scene_seed(7, "test", k)).depth, "16UC1")
+                for k in range(count)]
+
+
+def in_process_reference(frames, model_path: str, params: dict, repeats: int = 3,
+                         superpixel_thread: bool = False) -> dict:
+    """Inference alone and conversion alone, in this process (one torch thread, and the
+    superpixel thread as the node's `superpixel_thread`), for comparison."""
+    import torch
+
+    from inseggan_ros.core.image_codec import depth_to_metres
+    from inseggan_ros.ros import conversions
+    from inseggan_ros.ros.segmenter import resolve_model
+    from inseggan_ros.runtime.preprocess import BIN_FRAMES, node_defaults
+    from inseggan_ros.runtime.segment import Segmenter
+
+    torch.set_num_threads(1)
+    seg = Segmenter.from_checkpoint(resolve_model(model_path), device="cpu",
+                                    superpixel_thread=superpixel_thread)
+    # as the node: a checkpoint without settings runs realtime.yaml's
+    cfg = settings.apply(settings.file_base(seg.inference, seg.stored_settings), params)
+    prep = node_defaults(seg.prep_cfg,
+                         [depth_to_metres(f, "16UC1") for f in frames[:BIN_FRAMES]])
+    infer_ms, conv_ms = [], []
+    for _ in range(repeats):
+        for raw in frames:
+            msg = conversions.numpy_to_image(raw, "16UC1")
+            t0 = time.perf_counter()
+            depth = conversions.depth_to_metres(msg)
+            t1 = time.perf_counter()
+            out = seg(depth, prep, reconstruction=False, settings=cfg)
+            t2 = time.perf_counter()
+            conversions.numpy_to_image(out.labels, "mono8", msg.header)
+            t3 = time.perf_counter()
+            infer_ms.append((t2 - t1) * 1e3)
+            conv_ms.append((t1 - t0 + t3 - t2) * 1e3)
+    return {"inference_ms": np.array(infer_ms), "conversion_ms": np.array(conv_ms),
+            "settings": cfg}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="inseggan-bench-node", description=__doc__.split("\n")[0])
+    ap.add_argument("--seconds", type=float, default=60.0)
+    ap.add_argument("--rate", type=float, default=30.0)
+    ap.add_argument("--width", type=int, default=1280)
+    ap.add_argument("--height", type=int, default=720)
+    ap.add_argument("--model", default="", help="segmenter model_path ('' = shipped default)")
+    ap.add_argument("--distinct-frames", type=int, default=8)
+    ap.add_argument("--params-file", type=Path,
+                    help="ROS 2 parameters file for the segmenter (e.g. config/quality.yaml)")
+    for s in settings.exposed():  # the segmenter's inference settings, one name each
+        ap.add_argument(s.flag, type=s.type, choices=s.choices, help=f"segmenter {s.name}")
+    ap.add_argument("--superpixel-thread", choices=("on", "off"), default="on",
+                    help="the segmenter's superpixel_thread (default on, as the node's)")
+    ap.add_argument("--default-transport", action="store_true",
+                    help="Fast DDS's built-in transports instead of the shipped large-frames "
+                         "profile (config/fastdds_large_frames.xml)")
+    ap.add_argument("--node-sets-profile", action="store_true",
+                    help="start the segmenter without the profile variable, as a plain "
+                         "`ros2 run` does, so that it must set the profile itself")
+    args = ap.parse_args(argv)
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    try:
+        params = settings.read_params_file(args.params_file) if args.params_file else {}
+    except ValueError as e:
+        print(f"bench-node: error: {e}", file=sys.stderr)
+        return 2
+    flags = settings.from_flags(args)
+    params.update(flags)
+    from inseggan_ros.ros.dds import PROFILE_VARIABLES, use_large_frames_profile
+
+    if args.default_transport:
+        for v in PROFILE_VARIABLES:
+            os.environ.pop(v, None)
+    profile = "built-in transports" if args.default_transport else use_large_frames_profile()
+    print(f"bench-node: Fast DDS profile: {profile}", flush=True)
+
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.qos import qos_profile_sensor_data
+    from sensor_msgs.msg import Image
+
+    from tools.demo import _executable, _stop
+    from inseggan_ros.ros import conversions
+
+    print(f"bench-node: simulating {args.distinct_frames} {args.width}x{args.height} frames ...",
+          flush=True)
+    from inseggan_ros.core.checkpoint import CheckpointError
+    from inseggan_ros.ros.segmenter import ConfigError
+
+    frames = simulated_frames(args.distinct_frames, args.width, args.height)
+    try:
+        ref = in_process_reference(frames, args.model, params,
+                                   superpixel_thread=args.superpixel_thread == "on")
+    except (CheckpointError, ConfigError, ValueError) as e:
+        print(f"bench-node: error: {e}", file=sys.stderr)
+        return 2
+
+    rclpy.init()
+    node = rclpy.create_node("bench_node")
+    pub = node.create_publisher(Image, "camera/depth/image_rect_raw", qos_profile_sensor_data)
+    answered: dict[int, int] = {}
+    diags = []
+    node.create_subscription(
+        Image, "segmenter/labels",
+        lambda m: answered.__setitem__(conversions.stamp_to_ns(m.header.stamp), time.time_ns()), 10)
+    node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
+    # the parameters file first: rcl gathers every -p into one set at the first -p's place, so
+    # a file after any -p would override even the -p flags that follow it
+    model = ["--params-file", str(args.params_file)] if args.params_file else []
+    if args.model:
+        model += ["-p", f"model_path:={args.model}"]
+    for name, value in flags.items():
+        model += ["-p", f"{name}:={value}"]
+    model += ["-p", f"superpixel_thread:={str(args.superpixel_thread == 'on').lower()}"]
+    env = None
+    if args.node_sets_profile:
+        env = {k: v for k, v in os.environ.items() if k not in PROFILE_VARIABLES}
+    seg = subprocess.Popen([_executable("segmenter"), "--ros-args", *model,
+                            "-p", "latency_window:=100000"],
+                           stderr=subprocess.PIPE, text=True, env=env)
+    msgs = [conversions.numpy_to_image(f, "16UC1") for f in frames]
+    sent: list[int] = []
+    try:
+        t0 = time.monotonic()  # wait until the segmenter answers a frame: it is connected
+        while not answered and time.monotonic() - t0 < 60 and seg.poll() is None:
+            m = msgs[0]
+            m.header.stamp = node.get_clock().now().to_msg()
+            pub.publish(m)
+            end = time.monotonic() + 0.5
+            while time.monotonic() < end:
+                rclpy.spin_once(node, timeout_sec=0.05)
+        if not answered:
+            print("bench-node: error: the segmenter did not answer\n" + seg.stderr.read(),
+                  file=sys.stderr)
+            return 1
+        answered.clear()
+        diags.clear()
+        base = None
+        print(f"bench-node: publishing at {args.rate:.0f} Hz for {args.seconds:.0f} s", flush=True)
+        start = time.monotonic()
+        k = 0
+        while time.monotonic() - start < args.seconds:
+            due = start + k / args.rate
+            while time.monotonic() < due:
+                rclpy.spin_once(node, timeout_sec=max(0.0, min(0.005, due - time.monotonic())))
+            m = msgs[k % len(msgs)]
+            m.header.stamp = node.get_clock().now().to_msg()
+            pub.publish(m)
+            sent.append(conversions.stamp_to_ns(m.header.stamp))
+            k += 1
+            if base is None and diags:
+                base = {kv.key: kv.value for kv in diags[-1].status[0].values}
+        end = time.monotonic() + 3.0  # the last answers and a final diagnostics message
+        while time.monotonic() < end:
+            rclpy.spin_once(node, timeout_sec=0.05)
+        peak_mb = _vm_hwm_mb(seg.pid)
+    finally:
+        _stop(seg)
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+    last = {kv.key: kv.value for kv in diags[-1].status[0].values} if diags else {}
+    got = [s for s in sent if s in answered]
+    e2e = np.array([(answered[s] - s) / 1e6 for s in got])
+    received = int(last.get("frames_received", 0)) - int((base or {}).get("frames_received", 0))
+    cfg = ref["settings"]
+    print(f"\nsegmenter node, {args.width}x{args.height} 16UC1 at {args.rate:.0f} Hz for "
+          f"{args.seconds:.0f} s (model {last.get('model', '?')}, {last.get('device', '?')}, "
+          f"Fast DDS: {profile})")
+    print(f"  settings: {cfg.refine_steps} refinement iterations, {cfg.refine_hypotheses} "
+          f"starting points ({cfg.refine_keep or 'all'} refined, {cfg.refine_swaps} swaps), "
+          f"smoothing {cfg.smooth.iters} + "
+          f"{cfg.smooth.full_res_active} at full resolution, encoder in "
+          f"{last.get('encoder_precision', cfg.encoder_precision)}, centre votes "
+          f"{cfg.centre_votes} (net in {last.get('centre_precision', cfg.centre_precision)}), "
+          f"second thread "
+          f"{args.superpixel_thread}"
+          + (f" (params file {args.params_file})" if args.params_file else ""))
+    print(f"  frames: sent {len(sent)}, answered {len(got)} "
+          f"({100 * len(got) / max(len(sent), 1):.1f} %),"
+          f" dropped {len(sent) - len(got)} (node received about {received}; skipped "
+          f"{last.get('frames_skipped', '?')})")
+    print(f"  node latency (received -> labels published): p50 {last.get('latency_p50_ms')} ms, "
+          f"p99 {last.get('latency_p99_ms')} ms   [target p50 <= 20, p99 <= 40]")
+    print(f"    of which inference p50 {last.get('inference_p50_ms')} ms, message conversion "
+          f"p50 {last.get('conversion_p50_ms')} ms")
+    if len(e2e):
+        print(f"  end to end (stamp -> labels received here): p50 {np.percentile(e2e, 50):.1f} ms,"
+              f" p99 {np.percentile(e2e, 99):.1f} ms")
+    print(f"  peak resident memory of the node: {peak_mb:.0f} MB   [target <= 1024]")
+    print(f"  in this process, same frames, one torch thread (second thread "
+          f"{args.superpixel_thread}): preprocessing + inference p50 "
+          f"{np.percentile(ref['inference_ms'], 50):.1f} ms (p99 "
+          f"{np.percentile(ref['inference_ms'], 99):.1f}); conversion p50 "
+          f"{np.percentile(ref['conversion_ms'], 50):.2f} ms")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
