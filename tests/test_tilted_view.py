@@ -173,7 +173,7 @@ def test_tilted_render_keeps_ground_truth_and_geometry():
 
 
 def test_view_benchmark_prints_its_figures(capsys):
-    from inseggan_ros.sim import view_benchmark
+    from tools import bench_view as view_benchmark
 
     assert view_benchmark.main(["--frames", "1", "--tilts", "5", "--timing-frames", "0"]) == 0
     out = capsys.readouterr().out

@@ -29,7 +29,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from inseggan_ros import checkpoint  # noqa: E402
+from inseggan_ros.core import checkpoint  # noqa: E402
 from inseggan_ros.runtime.preprocess import PreprocessConfig  # noqa: E402
 from inseggan_ros.learning.train import get_config, train  # noqa: E402
 
