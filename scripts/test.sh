@@ -19,8 +19,10 @@ export ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-$(( $$ % 90 + 5 ))}
 # nodes run TEST_JOBS at a time, one test file per process: most of them are small trainings and
 # simulations that leave part of the CPU idle. Then the tests marked `serial` (nodes over real
 # DDS, whose frame delivery and timing are part of what they check) run alone.
-# Extra arguments go to pytest in both runs.
+# FAST=1 (`make test-fast`) leaves out the tests marked `slow` (tests/conftest.py): the fast
+# tier, under 3 minutes, for every change. Extra arguments go to pytest in both runs.
 JOBS=${TEST_JOBS:-2}
+if [ "${FAST:-0}" = 1 ]; then NOT_SLOW=" and not slow"; else NOT_SLOW=""; fi
 run() {
   colcon test --base-paths . --packages-select inseggan_ros --return-code-on-test-failure \
     --event-handlers console_direct+ --pytest-args -ra "$@"
@@ -28,13 +30,13 @@ run() {
 rm -f build/inseggan_ros/pytest*.xml
 if [ "$JOBS" -gt 1 ] && python -c "import xdist" 2>/dev/null; then
   # one thread each (OMP_NUM_THREADS, which torch follows): JOBS processes share the cores
-  OMP_NUM_THREADS=${OMP_NUM_THREADS:-1} run -m "not serial" -n "$JOBS" --dist loadfile "$@"
+  OMP_NUM_THREADS=${OMP_NUM_THREADS:-1} run -m "not serial$NOT_SLOW" -n "$JOBS" --dist loadfile "$@"
   rc=$?
   # colcon test writes build/inseggan_ros/pytest.xml each time: keep the first run's beside it
   [ -f build/inseggan_ros/pytest.xml ] && mv build/inseggan_ros/pytest.xml build/inseggan_ros/pytest_parallel.xml
-  run -m serial "$@" || rc=1
+  run -m "serial$NOT_SLOW" "$@" || rc=1
 else
-  run "$@"
+  if [ -n "$NOT_SLOW" ]; then run -m "not slow" "$@"; else run "$@"; fi
   rc=$?
 fi
 colcon test-result --test-result-base build/inseggan_ros --verbose || rc=${rc:-1}

@@ -131,6 +131,41 @@ LONGEST_FIRST = ("test_loop.py", "test_distill.py", "test_train.py", "test_unlab
                  "test_label_head.py", "test_selffit.py", "test_models.py", "test_template.py")
 
 
+# The tests that each take ten seconds or more of training, simulation or a whole loop: marked
+# `slow`, so that the fast tier (`make test-fast`, `-m "not slow"`) runs in under 3 minutes for
+# every change; `make test` (CI) runs them all.
+SLOW = {
+    "test_loop.py": ("test_one_command_from_a_bag_learns_the_shape_then_ships_a_model",
+                     "test_the_loop_piles_a_nut_with_its_hole_where_the_grid_asks_for_one",
+                     "test_the_loop_piles_a_disc_template_matched_to_the_frames_and_keeps_the_rod",
+                     "test_the_loop_fits_a_convex_template_from_the_rod_and_piles_and_ships_it"),
+    "test_train.py": ("test_tiny_training_run_improves_reconstruction",
+                      "test_killed_run_resumes_from_its_last_checkpoint",
+                      "test_ddp_two_processes_gloo_identical_weights",
+                      "test_n_is_the_data_sets_parts_per_bin_unless_given"),
+    "test_centres.py": ("test_self_labels_teach_the_net_the_models_own_labels_of_the_users_frames",
+                        "test_self_labels_from_a_recording_label_all_its_frames",
+                        "test_a_short_training_run_segments_held_out_piles_better_and_ships_in_"
+                        "the_model"),
+    "test_label_head.py": ("test_a_short_training_run_explains_held_out_scenes_better_and_ships_"
+                           "in_the_model",),
+    "test_distill.py": ("test_the_users_own_frames_are_reconstructed_better_with_their_loss",
+                        "test_distillation_brings_the_encoder_towards_its_refined_poses",
+                        "test_a_narrower_encoder_pruned_from_the_source_learns_the_refined_poses"),
+    "test_pilematch.py": ("test_piles_choose_the_head_the_frames_were_made_of_and_a_search_resumes",
+                          "test_the_card_draws_the_piles_template_beside_the_models_own",
+                          "test_a_nut_s_piles_choose_a_ring_with_its_hole_over_a_solid_disc",
+                          "test_a_cone_s_piles_choose_a_frustum_with_its_taper_over_a_straight_"
+                          "disc"),
+    "test_models.py": ("test_card_run_records_another_training_run_on_the_cards_test_split",
+                       "test_card_shape_adds_the_learned_template_against_the_true_part"),
+    "test_template.py": ("test_exact_height_map_matches_ray_casting",),
+}
+
+
 def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if item.originalname in SLOW.get(item.path.name, ()):
+            item.add_marker(pytest.mark.slow)
     rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: file order kept

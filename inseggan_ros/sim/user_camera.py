@@ -31,6 +31,7 @@ import numpy as np
 
 from inseggan_ros.runtime import preprocess
 from inseggan_ros.sim.camera import CameraConfig
+from inseggan_ros.sim.noise_fit import estimate_noise
 
 MAX_TILT = 45.0  # degrees: what CameraConfig takes
 ROLL_MIN_TILT = 0.5  # degrees: below it the floor does not show which way the camera leans
@@ -221,7 +222,8 @@ def estimate_camera(depths, info, near: float = 0.05, far: float = 3.0
     (metres along the camera's world x and y, for a `BinConfig`), "walls_found" (sides -x,
     +x, -y, +y: where False the size comes from the floor seen, not a wall), "wall_height"
     (metres, the walls' top above the floor), "floor_pixels" (readings the plane was fitted
-    to) and "frames". Raises ValueError naming what is wrong:
+    to), "frames", and "noise" (the `NoiseConfig` its frames show, `noise_fit.estimate_noise`;
+    what was measured: "noise_measured"). Raises ValueError naming what is wrong:
     no frames, frames of another size than the camera info, no bin floor, a tilt above 45
     degrees, a pose the simulator cannot take."""
     K = np.asarray(info.K, np.float64).reshape(3, 3)
@@ -255,9 +257,12 @@ def estimate_camera(depths, info, near: float = 0.05, far: float = 3.0
     except ValueError as e:
         raise ValueError(f"the bin's centre at pixel ({u:.0f}, {v:.0f}) gives no simulator "
                          f"camera: {e}") from None
+    noise, measured = estimate_noise(stack, plane, _floor_mask(
+        stack.shape[1:], region.polygon, erode=max(2, stack.shape[2] // 200)), fx)
     return cam, {"plane": plane, "bin_region": region, "frames": len(stack),
                  "bin_inner_size": (float(hi[0] - lo[0]), float(hi[1] - lo[1])),
-                 "walls_found": found, "wall_height": wall, "floor_pixels": used}
+                 "walls_found": found, "wall_height": wall, "floor_pixels": used,
+                 "noise": noise, "noise_measured": measured}
 
 
 def camera_from_bag(path, depth_topic: str | None = None, frames: int = 30
