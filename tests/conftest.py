@@ -160,6 +160,20 @@ SLOW = {
     "test_models.py": ("test_card_run_records_another_training_run_on_the_cards_test_split",
                        "test_card_shape_adds_the_learned_template_against_the_true_part"),
     "test_template.py": ("test_exact_height_map_matches_ray_casting",),
+    # nodes over DDS (serial): the fast tier keeps their start-up, error and replay tests
+    "test_picks.py": ("test_picks_over_dds_match_the_simulator",
+                      "test_without_a_matching_camera_info_labels_go_on_and_diagnostics_say_why",
+                      "test_camera_info_is_taken_beside_a_remapped_depth_topic"),
+    "test_segmenter.py": ("test_tilted_realsense_recording_is_segmented_end_to_end",
+                          "test_quality_file_keeps_the_models_own_vote_and_a_training_checkpoint_"
+                          "runs_realtime",
+                          "test_replayed_bag_is_segmented_with_headers_masks_and_diagnostics",
+                          "test_shipped_parameter_files_set_the_segmenter",
+                          "test_an_incompatible_model_file_stops_the_node",
+                          "test_bad_frames_are_counted_and_skipped_and_the_node_keeps_serving"),
+    "test_launch.py": ("test_parameters_the_launch_files_set_are_declared_by_the_nodes",),
+    "test_dds.py": ("test_large_frames_arrive_between_processes_with_the_profile",),
+    "test_bin_replay.py": ("test_simulated_frames_arrive_over_dds",),
 }
 
 
