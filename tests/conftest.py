@@ -177,6 +177,7 @@ SLOW = {
 }
 
 
+@pytest.hookimpl(tryfirst=True)  # before -m deselects by the markers added here
 def pytest_collection_modifyitems(config, items):
     for item in items:
         if item.originalname in SLOW.get(item.path.name, ()):
