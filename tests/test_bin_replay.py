@@ -252,3 +252,32 @@ def test_large_frames_arrive_with_only_what_ros2_run_sets_up():
     finally:
         stop(sub)
     assert int(out.strip().splitlines()[-1]) >= 88, out
+
+
+def test_a_bad_frame_in_a_bag_is_skipped_and_said(tmp):
+    """A compressedDepth frame cut short in the middle of a bag: the node says which and why,
+    skips it and replays the rest (looping: every pass)."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    frames = bags.read_all(BAGS / "cylinder_sim", limit=4)
+    store = bags.typestore()
+    with Writer(tmp / "bag", version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        conn = w.add_connection(bags.COMPRESSED_DEPTH_TOPIC, bags.COMPRESSED_TYPE,
+                                typestore=store)
+        for k, f in enumerate(frames):
+            fmt, data = bags.image_codec.encode_compressed_depth(f.depth, f.encoding)
+            msg = store.types[bags.COMPRESSED_TYPE](
+                header=bags._header(store, f.stamp_ns, f.frame_id), format=fmt,
+                data=np.frombuffer(data[:-30] if k == 2 else data, np.uint8))
+            w.write(conn, f.stamp_ns, store.serialize_cdr(msg, bags.COMPRESSED_TYPE))
+    replay = start_replay("/badframe", "source:=bag", f"bag_path:={tmp / 'bag'}", "loop:=true",
+                          "rate:=50.0", "max_frames:=6")
+    try:
+        assert replay.wait(timeout=60) == 0
+    finally:
+        stop(replay)
+    log = replay.stderr.read()
+    assert "published 6 frames" in log and "Traceback" not in log, log
+    bad = [line for line in log.splitlines() if "cut short before its IEND chunk" in line]
+    assert len(bad) == 2, log  # frames 0, 1, 3 a pass: the bad one met twice in 6 frames
+    assert f"(the frame stamped {frames[2].stamp_ns}); skipped" in bad[0]

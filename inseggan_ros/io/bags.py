@@ -27,7 +27,7 @@ import warnings
 from dataclasses import dataclass, field
 from io import BytesIO
 from pathlib import Path
-from typing import Iterable, Iterator
+from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
@@ -245,13 +245,16 @@ def _decode_depth(msgtype: str, msg) -> tuple[np.ndarray, str, tuple[str, bytes]
 
 
 def read_frames(path, depth_topic: str | None = None, info_topic: str | None = None,
-                labels_topic: str | None = None, limit: int | None = None) -> Iterator[DepthFrame]:
+                labels_topic: str | None = None, limit: int | None = None,
+                on_bad_frame: Callable[[str], None] | None = None) -> Iterator[DepthFrame]:
     """Yield the depth frames of a bag in time order, with ground truth and camera info if there.
 
     `depth_topic` (a sensor_msgs/Image, or a sensor_msgs/CompressedImage of image_transport's
     compressedDepth) defaults as `resolve_depth_topic` says; `info_topic` to the camera_info
     beside it; `labels_topic` to /camera/depth/instance_labels. Labels are matched to depth
     frames by header stamp; camera info is the one nearest in header stamp (`_InfoTrack`).
+    A depth frame that does not decode is a BagError, or with `on_bad_frame` skipped after
+    calling it with a line naming the frame and the problem (a node replaying the bag goes on).
     A recording cut short or never finished gives its complete messages in recorded order, with
     a TruncatedBagWarning (see _recover).
     """
@@ -281,14 +284,20 @@ def read_frames(path, depth_topic: str | None = None, info_topic: str | None = N
                     allowed=("mono8", "8UC1"))
         infos = _InfoTrack((_stamp_ns(m.header), _camera_info(m))
                            for _, m in (messages(info_topic) if info_topic else ()))
-        for count, (msgtype, msg) in enumerate(messages(depth_topic), 1):
+        count = 0
+        for msgtype, msg in messages(depth_topic):
+            stamp = _stamp_ns(msg.header)
             try:
                 depth, encoding, compressed = _decode_depth(msgtype, msg)
             except ImageFormatError as e:
-                raise BagError(path, f"topic {depth_topic!r}: {e}") from None
-            stamp = _stamp_ns(msg.header)
+                problem = f"topic {depth_topic!r}: {e} (the frame stamped {stamp})"
+                if on_bad_frame is None:
+                    raise BagError(path, problem) from None
+                on_bad_frame(f"{path}: {problem}; skipped")
+                continue
             yield DepthFrame(stamp, str(msg.header.frame_id), encoding, depth,
                              labels.get(stamp), infos.nearest(stamp), compressed)
+            count += 1
             if limit is not None and count >= limit:
                 return
     except BagError:

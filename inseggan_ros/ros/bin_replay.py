@@ -86,8 +86,8 @@ class BinReplay(Node):
         else:
             self._bag = resolve_bag(self.p["bag_path"])
             # Open now so that a bad bag or topic fails at start-up with one clear line.
-            next(iter(bags.read_frames(self._bag, depth_topic=self.p["topic"] or None, limit=1)),
-                 None)
+            next(iter(bags.read_frames(self._bag, depth_topic=self.p["topic"] or None, limit=1,
+                                       on_bad_frame=self._bad_frame)), None)
             self._frames = self._bag_frames()
             timing = "recorded timing" if self.p["rate"] == 0 else f"{self.p['rate']} Hz"
             what = f"bag {self._bag} ({timing}{', looping' if self.p['loop'] else ''})"
@@ -176,11 +176,18 @@ class BinReplay(Node):
 
     def _bag_frames(self):
         while True:
-            for f in bags.read_frames(self._bag, depth_topic=self.p["topic"] or None):
+            good = 0
+            for f in bags.read_frames(self._bag, depth_topic=self.p["topic"] or None,
+                                      on_bad_frame=self._bad_frame):
+                good += 1
                 yield (f.stamp_ns, f.frame_id, f.encoding, f.depth, f.labels, f.camera_info,
                        f.compressed)
-            if not self.p["loop"]:
+            if not self.p["loop"] or not good:  # no frame to loop over: done
                 return
+
+    def _bad_frame(self, line: str) -> None:
+        """A bag frame that does not decode: said, skipped, and the replay goes on."""
+        self.get_logger().warning(line)
 
     # ------------------------------------------------------------------ publishing loop
     def _run(self) -> None:
