@@ -205,7 +205,8 @@ class _InfoTrack:
     reading the info topic alone, ahead of the frames as far as a frame needs: up to the first
     CameraInfo stamped at or after it. So a recorder that writes each CameraInfo just after its
     image, or one CameraInfo anywhere in the bag, still gives every frame its camera info.
-    Frames come in stamp order; CameraInfos older than the one a frame took are dropped."""
+    Frames come in stamp order: CameraInfos older than the latest at or before a frame are
+    dropped."""
 
     def __init__(self, stream: Iterator[tuple[int, CameraInfo]]):
         self._stream = stream
