@@ -229,6 +229,163 @@ def test_cli_simulate_bag_is_atomic(tmp):
     assert [p.name for p in tmp.iterdir()] == ["cones"]
 
 
+# ------------------------------------------------- compressedDepth, and camera info by stamp
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+@pytest.mark.parametrize("encoding", ["16UC1", "32FC1"])
+def test_compressed_depth_round_trip(tmp, storage, encoding):
+    """Depth written as image_transport's compressedDepth reads back as the raw Image does:
+    16UC1 the same millimetres, 32FC1 within the quantisation's bound; labels, camera info,
+    stamps as they were; the topic found without naming it and listed as a depth topic."""
+    frames = _frames()
+    bags.write_frames(tmp / "raw", frames, encoding=encoding, storage=storage)
+    bags.write_frames(tmp / "small", frames, encoding=encoding, storage=storage,
+                      transport="compressedDepth")
+    topics = bags.list_topics(tmp / "small")
+    assert topics[bags.COMPRESSED_DEPTH_TOPIC] == ("sensor_msgs/msg/CompressedImage", 3)
+    assert bags.DEPTH_TOPIC not in topics
+    assert bags.depth_topics(topics) == [bags.COMPRESSED_DEPTH_TOPIC]
+    raw, small = read_all(tmp / "raw"), read_all(tmp / "small")
+    assert [f.stamp_ns for f in small] == [f[0] for f in frames]
+    for r, c in zip(raw, small):
+        assert c.encoding == encoding and c.frame_id == r.frame_id and r.compressed is None
+        assert c.compressed[0] == f"{encoding}; compressedDepth png"
+        np.testing.assert_array_equal(c.labels, r.labels)
+        np.testing.assert_array_equal(c.camera_info.K, r.camera_info.K)
+        if encoding == "16UC1":
+            np.testing.assert_array_equal(c.depth, r.depth)
+        else:
+            a, _ = bags.image_codec.inverse_depth_params()
+            bound = bags.image_codec.quantisation_bound(r.metres(), a) + 1e-6
+            assert (np.abs(c.metres() - r.metres()) <= bound).all()
+            np.testing.assert_array_equal(c.metres() == 0, r.metres() == 0)
+    assert len(read_all(tmp / "small", depth_topic=bags.COMPRESSED_DEPTH_TOPIC)) == 3
+
+
+def _write_messages(path, messages):
+    """A bag of (topic, msgtype, stamp_ns, message) as given, in that order."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    store = bags.typestore()
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        conns = {}
+        for topic, msgtype, stamp, msg in messages:
+            if topic not in conns:
+                conns[topic] = w.add_connection(topic, msgtype, typestore=store)
+            w.write(conns[topic], stamp, store.serialize_cdr(msg, msgtype))
+
+
+def _compressed(stamp_ns, fmt, data):
+    store = bags.typestore()
+    header = bags._header(store, stamp_ns, "cam")
+    return store.types[bags.COMPRESSED_TYPE](header=header, format=fmt,
+                                             data=np.frombuffer(data, np.uint8))
+
+
+def test_compressed_depth_on_any_topic_beside_a_colour_jpeg(tmp):
+    """A robot's recording: compressedDepth on its own topic name beside a JPEG colour
+    CompressedImage: the depth topic is the only one that can be depth, so it is found; the
+    JPEG topic named as depth, or a garbled depth frame, is an error naming topic and problem."""
+    import cv2
+
+    mm = np.arange(12, dtype=np.uint16).reshape(3, 4) * 100
+    jpeg = cv2.imencode(".jpg", np.zeros((3, 4, 3), np.uint8))[1].tobytes()
+    fmt, data = bags.image_codec.encode_compressed_depth(mm, "16UC1")
+    depth_topic = "/robot/depth/image_raw/compressedDepth"
+    colour_topic = "/robot/color/image_raw/compressed"
+    _write_messages(tmp / "robot", [
+        (colour_topic, bags.COMPRESSED_TYPE, 0, _compressed(0, "jpeg", jpeg)),
+        (depth_topic, bags.COMPRESSED_TYPE, 1, _compressed(1, fmt, data)),
+        (depth_topic, bags.COMPRESSED_TYPE, 2, _compressed(2, fmt, data[:-40]))])
+    topics = bags.list_topics(tmp / "robot")
+    assert bags.depth_topics(topics) == [depth_topic]
+    first = next(bags.read_frames(tmp / "robot"))
+    np.testing.assert_array_equal(first.depth, mm)
+    assert first.frame_id == "cam" and first.camera_info is None
+    _expect(tmp / "robot", f"topic '{depth_topic}': format '16UC1; compressedDepth png': the "
+                           "PNG .* is cut short before its IEND chunk")
+    _expect(tmp / "robot", f"topic '{colour_topic}': format 'jpeg' is not "
+                           "compressed_depth_image_transport's", depth_topic=colour_topic)
+    _write_messages(tmp / "two", [(t, bags.COMPRESSED_TYPE, 1, _compressed(1, fmt, data))
+                                  for t in (depth_topic, "/other/compressedDepth")])
+    _expect(tmp / "two", "no depth topic .* name one; depth topics: /other/compressedDepth, "
+                         f"{depth_topic}")
+
+
+def _info(fx):
+    return CameraInfo(40, 30, np.array([[fx, 0, 19.5], [0, fx, 14.5], [0, 0, 1]]))
+
+
+def _fx(frames):
+    return [None if f.camera_info is None else f.camera_info.K[0, 0] for f in frames]
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_camera_info_recorded_after_its_image(tmp, storage):
+    """Recorders often write each CameraInfo just after its image: every frame, the first
+    included, gets the one of its own stamp."""
+    frames = _frames(4)
+    with BagWriter(tmp / "bag", storage=storage, transport="compressedDepth") as w:
+        for k, (stamp, depth, _, _) in enumerate(frames):
+            w.write(stamp, depth)
+            w.write_camera_info(stamp, _info(100 + k))
+    assert _fx(read_all(tmp / "bag")) == [100, 101, 102, 103]
+    assert _fx(read_all(tmp / "bag", limit=1)) == [100]  # what bag-info reads
+    p = run_cli("bag-info", tmp / "bag")
+    assert p.returncode == 0 and "camera_info yes" in p.stdout, p.stdout + p.stderr
+
+
+def test_camera_info_nearest_in_stamp_wherever_it_was_recorded(tmp):
+    """Each frame takes the CameraInfo nearest in header stamp (the earlier on a tie), however
+    far ahead in the bag it was recorded; one CameraInfo anywhere serves every frame."""
+    ms = 1_000_000
+    frames = _frames(6)
+    stamps = [f[0] for f in frames]  # 50 ms apart
+    with BagWriter(tmp / "bag") as w:
+        w.write(stamps[0], frames[0][1])
+        w.write_camera_info(stamps[0], _info(10))  # frame 0's own
+        w.write(stamps[1], frames[1][1])
+        w.write(stamps[2], frames[2][1])
+        w.write_camera_info(stamps[1] + 20 * ms, _info(12))  # nearer to frame 1 than 0's
+        w.write(stamps[3], frames[3][1])
+        w.write(stamps[4], frames[4][1])
+        w.write(stamps[5], frames[5][1])
+        w.write_camera_info(stamps[4] - 10 * ms, _info(14))  # recorded last
+    # frame 2: 30 ms to 12, 60 to 14; frame 3: 80 ms to 12, 40 ms to 14
+    assert _fx(read_all(tmp / "bag")) == [10, 12, 12, 14, 14, 14]
+    with BagWriter(tmp / "tie") as w:
+        w.write(stamps[1], frames[1][1])
+        w.write_camera_info(stamps[0], _info(20))
+        w.write_camera_info(stamps[2], _info(22))
+    assert _fx(read_all(tmp / "tie")) == [20]
+    with BagWriter(tmp / "late") as w:
+        for stamp, depth, _, _ in frames:
+            w.write(stamp, depth)
+        w.write_camera_info(stamps[-1] + 10**9, _info(30))  # a second after the last frame
+    assert _fx(read_all(tmp / "late")) == [30] * 6
+    assert _fx(read_all(tmp / "late", limit=1)) == [30]
+    bags.write_frames(tmp / "none", [(s, d, None, None) for s, d, _, _ in frames])
+    assert _fx(read_all(tmp / "none")) == [None] * 6
+
+
+def test_camera_info_after_the_image_in_a_cut_bag(tmp):
+    """A recording cut short is read from its files record by record: camera info is matched
+    by stamp there too."""
+    frames = _frames(6)
+    with BagWriter(tmp / "bag", compression="none") as w:
+        for k, (stamp, depth, _, _) in enumerate(frames):
+            w.write(stamp, depth)
+            w.write_camera_info(stamp, _info(50 + k))
+    (tmp / "bag" / "metadata.yaml").unlink()
+    got, _ = _read_warned(tmp / "bag")
+    assert _fx(got) == [50, 51, 52, 53, 54, 55]
+    mcap = next((tmp / "bag").glob("*.mcap"))
+    cut = _message_ends(mcap)[bags.DEPTH_TOPIC][4] + 1  # frame 4 whole, its camera info lost
+    mcap.write_bytes(mcap.read_bytes()[:cut])
+    got, warning = _read_warned(tmp / "bag")
+    assert "truncated bag" in warning
+    assert _fx(got) == [50, 51, 52, 53, 53]  # frame 4: the nearest left, 50 ms before it
+
+
 # ------------------------------------------------------------------ bags as robots leave them
 def _read_warned(path, **kw):
     """read_all, and the one TruncatedBagWarning it must emit (asserted)."""

@@ -38,11 +38,12 @@ def stop(proc):
     return proc.returncode
 
 
-def receive(tmp, ns, count, *params, timeout=60):
-    """Start a receiver process, then bin_replay; return the frames the receiver got."""
+def receive(tmp, ns, count, *params, timeout=60, flags=()):
+    """Start a receiver process (with `flags`, receiver.py's), then bin_replay; return the
+    frames the receiver got."""
     out = tmp / "received.npz"
     recv = subprocess.Popen([sys.executable, str(HERE / "receiver.py"), str(out), str(count),
-                             str(timeout), ns], stdout=subprocess.PIPE, text=True)
+                             str(timeout), ns, *flags], stdout=subprocess.PIPE, text=True)
     assert recv.stdout.readline().strip() == "receiver ready"
     replay = start_replay(ns, *params)
     try:
@@ -86,6 +87,72 @@ def test_bag_frames_arrive_with_their_stamps(tmp, bag):
         assert enc == f.encoding and fid == f.frame_id
         np.testing.assert_array_equal(depth, f.depth)
         np.testing.assert_array_equal(labels, f.labels)
+
+
+@pytest.fixture(scope="module")
+def compressed_bags(tmp_path_factory):
+    """The 16UC1 and the 32FC1 sample bag with their depth as compressedDepth
+    (tools/compress_bag.py; level 1: the values are the same at every level)."""
+    from tools.compress_bag import compress_bag
+
+    root = tmp_path_factory.mktemp("compressed")
+    for name in ("cylinder_sim", "hex_nut_sim_32fc1"):
+        compress_bag(BAGS / name, root / name, png_level=1)
+    return root
+
+
+@pytest.mark.parametrize("bag", ["cylinder_sim", "hex_nut_sim_32fc1"])
+def test_compressed_bag_replays_as_raw_images(tmp, compressed_bags, bag):
+    """A bag recorded as compressedDepth is published as raw Images (the default), decoded:
+    16UC1 the millimetres of the raw bag it was made from, 32FC1 what image_transport
+    decodes (NaN: no reading)."""
+    path = compressed_bags / bag
+    source = {f.stamp_ns: f for f in bags.read_all(path)}
+    raw = {f.stamp_ns: f for f in bags.read_all(BAGS / bag)}
+    got = receive(tmp, f"/cbag_{bag}", 4, "source:=bag", f"bag_path:={path}", "loop:=true",
+                  "rate:=20.0", "restamp:=false")
+    for stamp, depth, labels, enc in zip(got["stamp"], got["depth"], got["labels"],
+                                         got["encoding"]):
+        f = source[int(stamp)]
+        assert enc == f.encoding
+        np.testing.assert_array_equal(depth, f.depth)
+        np.testing.assert_array_equal(labels, f.labels)
+        if enc == "16UC1":
+            np.testing.assert_array_equal(depth, raw[int(stamp)].depth)
+
+
+def test_compressed_bag_replayed_as_compressed_depth_passes_its_bytes(tmp, compressed_bags):
+    """depth_transport:=compressedDepth: a compressedDepth bag's messages go out byte for byte
+    (a 32FC1 frame is not quantised twice) on .../image_rect_raw/compressedDepth."""
+    path = compressed_bags / "hex_nut_sim_32fc1"
+    source = {f.stamp_ns: f for f in bags.read_all(path)}
+    got = receive(tmp, "/cbag_pass", 3, "source:=bag", f"bag_path:={path}", "loop:=true",
+                  "rate:=20.0", "restamp:=false", "depth_transport:=compressedDepth",
+                  flags=["--compressed"])
+    for stamp, fmt, data, depth in zip(got["stamp"], got["format"], got["data"], got["depth"]):
+        f = source[int(stamp)]
+        assert (fmt, data) == f.compressed
+        np.testing.assert_array_equal(depth, f.depth)
+
+
+def test_simulated_frames_as_compressed_depth(tmp):
+    """Simulated bins published as compressedDepth (and a raw bag's frames encoded so) decode
+    to the same millimetres as the raw Images."""
+    got = receive(tmp, "/sim_cd", 3, "object:=cone", "seed:=5", "rate:=10.0",
+                  "depth_transport:=compressedDepth", flags=["--compressed"])
+    cfg = SceneConfig(object="cone")
+    with BinSimulator(cfg) as sim:
+        expected = [metres_to_depth(sim.render(scene_seed(5, "test", k)).depth, "16UC1")
+                    for k in range(60)]
+    for depth, fmt in zip(got["depth"], got["format"]):
+        assert fmt == "16UC1; compressedDepth png"
+        assert sum(np.array_equal(depth, e) for e in expected) == 1
+    source = {f.stamp_ns: f for f in bags.read_all(BAGS / "cylinder_sim")}
+    got = receive(tmp, "/raw_cd", 3, "source:=bag", "bag_path:=cylinder_sim", "loop:=true",
+                  "rate:=20.0", "restamp:=false", "depth_transport:=compressedDepth",
+                  "png_level:=9", flags=["--compressed"])
+    for stamp, depth in zip(got["stamp"], got["depth"]):
+        np.testing.assert_array_equal(depth, source[int(stamp)].depth)
 
 
 def test_shipped_bag_by_name_with_recorded_timing_stops_at_the_end(tmp):
@@ -139,6 +206,8 @@ def test_a_profile_the_user_set_is_left_alone(tmp):
      "shipped bags: bolt_sim, bolt_tilted_realsense, cone_sim"),
     (["source:=bag", "bag_path:=cylinder_sim", "topic:=/nope"],
      "topic '/nope' is not in the bag; topics: /camera/depth/camera_info"),
+    (["depth_transport:=theora"],
+     "parameter depth_transport='theora' invalid; valid: raw, compressedDepth"),
 ])
 def test_bad_parameters_fail_at_start_with_one_clear_line(params, message):
     replay = start_replay("/bad", *params)
@@ -183,3 +252,32 @@ def test_large_frames_arrive_with_only_what_ros2_run_sets_up():
     finally:
         stop(sub)
     assert int(out.strip().splitlines()[-1]) >= 88, out
+
+
+def test_a_bad_frame_in_a_bag_is_skipped_and_said(tmp):
+    """A compressedDepth frame cut short in the middle of a bag: the node says which and why,
+    skips it and replays the rest (looping: every pass)."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    frames = bags.read_all(BAGS / "cylinder_sim", limit=4)
+    store = bags.typestore()
+    with Writer(tmp / "bag", version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        conn = w.add_connection(bags.COMPRESSED_DEPTH_TOPIC, bags.COMPRESSED_TYPE,
+                                typestore=store)
+        for k, f in enumerate(frames):
+            fmt, data = bags.image_codec.encode_compressed_depth(f.depth, f.encoding)
+            msg = store.types[bags.COMPRESSED_TYPE](
+                header=bags._header(store, f.stamp_ns, f.frame_id), format=fmt,
+                data=np.frombuffer(data[:-30] if k == 2 else data, np.uint8))
+            w.write(conn, f.stamp_ns, store.serialize_cdr(msg, bags.COMPRESSED_TYPE))
+    replay = start_replay("/badframe", "source:=bag", f"bag_path:={tmp / 'bag'}", "loop:=true",
+                          "rate:=50.0", "max_frames:=6")
+    try:
+        assert replay.wait(timeout=60) == 0
+    finally:
+        stop(replay)
+    log = replay.stderr.read()
+    assert "published 6 frames" in log and "Traceback" not in log, log
+    bad = [line for line in log.splitlines() if "cut short before its IEND chunk" in line]
+    assert len(bad) == 2, log  # frames 0, 1, 3 a pass: the bad one met twice in 6 frames
+    assert f"(the frame stamped {frames[2].stamp_ns}); skipped" in bad[0]

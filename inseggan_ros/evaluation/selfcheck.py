@@ -194,7 +194,7 @@ def load_bag_frames(path, prep_cfg, depth_topic: str | None = None,
     if count is not None:
         if count < 1:
             raise ValueError(f"frames {count} invalid; valid: >= 1")
-        total = topics.get(depth_topic or bags.DEPTH_TOPIC, ("", 0))[1]
+        total = topics[bags.resolve_depth_topic(path, topics, depth_topic)][1]
         if total:
             wanted = set(np.linspace(0, total - 1, min(count, total)).round().astype(int).tolist())
     rows = {"x": [], "fg": [], "labels": [], "stamp_ns": [], "index": [], "roi": [],

@@ -1,10 +1,11 @@
-"""sensor_msgs/Image and CameraInfo <-> numpy. The only place that touches message fields."""
+"""sensor_msgs/Image, CompressedImage (image_transport's compressedDepth) and CameraInfo <->
+numpy. The only place that touches message fields."""
 from __future__ import annotations
 
 import array
 
 import numpy as np
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 
 from inseggan_ros.core import image_codec
@@ -19,10 +20,41 @@ def image_to_numpy(msg: Image, allowed: tuple[str, ...] | None = None,
                               msg.data, allowed=allowed, copy=copy)
 
 
-def depth_to_metres(msg: Image) -> np.ndarray:
-    """Depth Image (16UC1/mono16 millimetres or 32FC1 metres) -> float32 metres, 0 = no reading."""
+def depth_to_numpy(msg: Image | CompressedImage) -> tuple[np.ndarray, str]:
+    """A depth Image, or a compressedDepth CompressedImage -> (raw depth, encoding): uint16
+    millimetres or float32 metres (image_codec). Raises image_codec.ImageFormatError."""
+    if isinstance(msg, CompressedImage):
+        return image_codec.decode_compressed_depth(msg.format, msg.data)
+    return image_to_numpy(msg, allowed=image_codec.DEPTH_ENCODINGS), msg.encoding
+
+
+def depth_to_metres(msg: Image | CompressedImage) -> np.ndarray:
+    """Depth Image (16UC1/mono16 millimetres or 32FC1 metres), or a compressedDepth
+    CompressedImage of one -> float32 metres, 0 = no reading."""
+    if isinstance(msg, CompressedImage):
+        return image_codec.depth_to_metres(*depth_to_numpy(msg))
     raw = image_to_numpy(msg, allowed=image_codec.DEPTH_ENCODINGS, copy=False)
     return image_codec.depth_to_metres(raw, msg.encoding)
+
+
+def numpy_to_compressed_depth(arr: np.ndarray, encoding: str, header: Header | None = None,
+                              **codec) -> CompressedImage:
+    """Raw depth (uint16 mm for 16UC1, float32 m for 32FC1) -> a CompressedImage as
+    image_transport's compressedDepth plugin publishes it; `codec`: its parameters
+    (image_codec.encode_compressed_depth: depth_max, depth_quantization, png_level)."""
+    fmt, data = image_codec.encode_compressed_depth(arr, encoding, **codec)
+    return compressed_image(fmt, data, header)
+
+
+def compressed_image(fmt: str, data: bytes, header: Header | None = None) -> CompressedImage:
+    """A CompressedImage of the given format and bytes (e.g. a bag's, passed on unchanged)."""
+    msg = CompressedImage(format=fmt)
+    if header is not None:
+        msg.header = header
+    buf = array.array("B")
+    buf.frombytes(data)
+    msg.data = buf
+    return msg
 
 
 def numpy_to_image(arr: np.ndarray, encoding: str, header: Header | None = None) -> Image:
