@@ -171,37 +171,30 @@ def majority(mask: np.ndarray, true_labels: np.ndarray) -> int | None:
     return k if counts[k] > mask.sum() / 2 else None
 
 
-def main(argv=None) -> int:
+def _parse(argv) -> argparse.Namespace:
     ap = argparse.ArgumentParser(prog="bench_picks", description=__doc__.split("\n")[0])
     ap.add_argument("--scenes", type=int, default=50)
     ap.add_argument("--seed", type=int, default=3, help="scene k is scene_seed(seed, 'test', k)")
     ap.add_argument("--model", default="", help="model name or checkpoint ('' = cylinder)")
     ap.add_argument("--noise", default="none", help="sensor noise on the segmented frames: "
                     "none or realsense (the truth is always noise-free)")
-    args = ap.parse_args(argv)
+    return ap.parse_args(argv)
+
+
+def _run_scenes(args, model, noise, cfg) -> dict:
+    """Each simulated scene segmented by `model` and picked, against its truth -> per figure,
+    every value of every scene: the segmenter's picks' errors, the top picks, the compute
+    times, and the true labels' picks' errors on the same depth ("oracle_...")."""
     from dataclasses import replace
 
-    import torch
-
-    from inseggan_ros.core.paths import resolve_model
     from inseggan_ros.runtime.picks import compute_picks, occluded_from_scores
     from inseggan_ros.runtime.preprocess import find_bin_roi
-    from inseggan_ros.runtime.segment import Segmenter
     from inseggan_ros.sim.dataset import scene_seed
-    from inseggan_ros.sim.noise import apply_noise, get_noise
-    from inseggan_ros.sim.scene import BinSimulator, SceneConfig
+    from inseggan_ros.sim.noise import apply_noise
+    from inseggan_ros.sim.scene import BinSimulator
 
-    torch.set_num_threads(1)
-    try:
-        noise = get_noise(args.noise)
-        model = Segmenter.from_checkpoint(resolve_model(args.model), device="cpu")
-    except ValueError as e:
-        print(f"bench_picks: error: {e}", file=sys.stderr)
-        return 2
-    cfg = SceneConfig(object="cylinder", instances=model.model_cfg.n_instances)
-
-    centroid, normal, normal_here, top_free, top_hidden, matched, ms = [], [], [], [], [], [], []
-    oracle_c, oracle_n = [], []  # the true labels on the same depth: the geometry's own error
+    r = {k: [] for k in ("centroid", "normal", "normal_here", "top_free", "top_hidden",
+                         "matched", "ms", "oracle_c", "oracle_n")}
     roi = None
     with BinSimulator(cfg) as sim:
         for k in range(args.scenes):
@@ -217,42 +210,66 @@ def main(argv=None) -> int:
             t0 = time.perf_counter()
             picks = compute_picks(depth, seg.labels, cfg.camera.K,
                                   occluded_from_scores(seg.scores))
-            ms.append((time.perf_counter() - t0) * 1e3)
+            r["ms"].append((time.perf_counter() - t0) * 1e3)
             e = frame_errors(picks, seg.labels, truth)
             o = frame_errors(compute_picks(depth, scene.labels, cfg.camera.K, truth["hidden"]),
                              scene.labels, truth)
-            oracle_c += o["centroid"]
-            oracle_n += o["normal"]
-            centroid += e["centroid"]
-            normal += e["normal"]
-            normal_here += e["normal_here"]
-            top_free.append(e["top_free"])
-            top_hidden.append(e["top_hidden"])
-            matched.append(e["matched"])
-    c, n = np.array(centroid) * 1e3, np.array(normal)
+            r["oracle_c"] += o["centroid"]
+            r["oracle_n"] += o["normal"]
+            for key in ("centroid", "normal", "normal_here"):
+                r[key] += e[key]
+            r["top_free"].append(e["top_free"])
+            r["top_hidden"].append(e["top_hidden"])
+            r["matched"].append(e["matched"])
+    return r
+
+
+def _print_report(args, cfg, model_path, r: dict) -> None:
+    c, n = np.array(r["centroid"]) * 1e3, np.array(r["normal"])
     print(f"bench_picks: {args.scenes} simulated {cfg.object} bins ({cfg.instances} instances, "
           f"{cfg.camera.width}x{cfg.camera.height}, noise {args.noise}), model "
-          f"{resolve_model(args.model)}")
-    print(f"  instances matched to the truth (IoU >= {MATCH_IOU}): {np.mean(matched):.2f} of "
-          f"{cfg.instances} a scene")
+          f"{model_path}")
+    print(f"  instances matched to the truth (IoU >= {MATCH_IOU}): {np.mean(r['matched']):.2f} "
+          f"of {cfg.instances} a scene")
     print(f"  centroid error, matched instances more than half visible ({len(c)}): median "
           f"{np.median(c):.2f} mm, mean {c.mean():.2f} mm, p90 {np.percentile(c, 90):.2f} mm, "
           f"max {c.max():.2f} mm   [target < 5 mm]")
     print(f"  normal error, the same with a defined true normal ({len(n)}): median "
           f"{np.median(n):.2f} deg, mean {n.mean():.2f} deg, p90 {np.percentile(n, 90):.2f} deg, "
           f"max {n.max():.2f} deg   [target < 10 deg]")
-    nh = np.array(normal_here)
+    nh = np.array(r["normal_here"])
     print(f"  normal error at the point picked (against the true normal there, {len(nh)}): "
           f"median {np.median(nh):.2f} deg, mean {nh.mean():.2f} deg, p90 "
           f"{np.percentile(nh, 90):.2f} deg, max {nh.max():.2f} deg")
-    oc, on = np.array(oracle_c) * 1e3, np.array(oracle_n)
+    oc, on = np.array(r["oracle_c"]) * 1e3, np.array(r["oracle_n"])
     print(f"  with the true labels on the same depth (the geometry's own error): centroid "
           f"median {np.median(oc):.2f} mm, max {oc.max():.2f} mm; normal median "
           f"{np.median(on):.2f} deg, max {on.max():.2f} deg")
-    print(f"  top pick truly free (at most {FREE_TRUE:.0%} hidden): {np.mean(top_free):.1%} of "
-          f"{args.scenes} scenes   [target >= 95 %]; the top pick's true hidden share: median "
-          f"{np.nanmedian(top_hidden):.3f}, max {np.nanmax(top_hidden):.3f}")
-    print(f"  compute_picks: p50 {np.percentile(ms, 50):.1f} ms a frame")
+    print(f"  top pick truly free (at most {FREE_TRUE:.0%} hidden): {np.mean(r['top_free']):.1%} "
+          f"of {args.scenes} scenes   [target >= 95 %]; the top pick's true hidden share: "
+          f"median {np.nanmedian(r['top_hidden']):.3f}, max {np.nanmax(r['top_hidden']):.3f}")
+    print(f"  compute_picks: p50 {np.percentile(r['ms'], 50):.1f} ms a frame")
+
+
+def main(argv=None) -> int:
+    args = _parse(argv)
+    import torch
+
+    from inseggan_ros.core.paths import resolve_model
+    from inseggan_ros.runtime.segment import Segmenter
+    from inseggan_ros.sim.noise import get_noise
+    from inseggan_ros.sim.scene import SceneConfig
+
+    torch.set_num_threads(1)
+    try:
+        noise = get_noise(args.noise)
+        model = Segmenter.from_checkpoint(resolve_model(args.model), device="cpu")
+    except ValueError as e:
+        print(f"bench_picks: error: {e}", file=sys.stderr)
+        return 2
+    cfg = SceneConfig(object="cylinder", instances=model.model_cfg.n_instances)
+    r = _run_scenes(args, model, noise, cfg)
+    _print_report(args, cfg, resolve_model(args.model), r)
     return 0
 
 

@@ -16,6 +16,7 @@ import signal
 import subprocess
 import sys
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -37,7 +38,20 @@ def _stop(proc: subprocess.Popen) -> None:
         proc.wait()
 
 
-def main(argv=None) -> int:
+@dataclass
+class _Received:
+    """What this process heard, by stamp: (arrival ns, array) of each depth frame, ground-truth
+    label image and segmenter label image; the stamps shown so far, in order, and their
+    scores."""
+
+    depth: dict = field(default_factory=dict)
+    gt: dict = field(default_factory=dict)
+    seg: dict = field(default_factory=dict)
+    done: list = field(default_factory=list)
+    scores: list = field(default_factory=list)  # (mIoU, K-Means mIoU, latency ms) of each
+
+
+def _parse(argv) -> argparse.Namespace:
     ap = argparse.ArgumentParser(prog="inseggan-demo", description=__doc__.split("\n")[0])
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--object", default="cylinder")
@@ -45,25 +59,27 @@ def main(argv=None) -> int:
     ap.add_argument("--rate", type=float, default=2.0)
     ap.add_argument("--out", type=Path, default=Path("demo_out"))
     ap.add_argument("--timeout", type=float, default=120.0)
-    args = ap.parse_args(argv)
-    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    from inseggan_ros.ros.dds import use_large_frames_profile
+    return ap.parse_args(argv)
 
-    print(f"demo: Fast DDS profile {use_large_frames_profile()}")
 
-    import rclpy
+def _scorer():
+    """-> score(labels, depth, gt): (mIoU of the labels, of K-Means on the same frame).
+    Imported here, before the nodes start, so that no frame waits for scikit-learn."""
+    from inseggan_ros.core.metrics import miou
+    from inseggan_ros.evaluation.baselines import kmeans
+
+    def score(labels, depth, gt):
+        return miou(labels, gt), miou(kmeans(-depth, gt > 0, int(gt.max())), gt)
+
+    return score
+
+
+def _subscribe(node, rx: _Received) -> None:
+    """Depth, ground truth (from bin_replay) and the segmenter's labels, kept by stamp."""
     from rclpy.qos import qos_profile_sensor_data
     from sensor_msgs.msg import Image
 
-    from inseggan_ros.io import bags
-    from inseggan_ros.core import viz
-    from inseggan_ros.evaluation.baselines import kmeans
-    from inseggan_ros.core.metrics import miou
     from inseggan_ros.ros import conversions
-
-    rclpy.init()
-    node = rclpy.create_node("inseggan_demo")
-    depth_by, gt_by, seg_by = {}, {}, {}  # stamp -> (arrival ns, array)
 
     def keep(store, decode):
         def cb(msg: Image):
@@ -71,11 +87,18 @@ def main(argv=None) -> int:
         return cb
 
     node.create_subscription(Image, "camera/depth/image_rect_raw",
-                             keep(depth_by, conversions.depth_to_metres), qos_profile_sensor_data)
+                             keep(rx.depth, conversions.depth_to_metres), qos_profile_sensor_data)
     node.create_subscription(Image, "camera/depth/instance_labels",
-                             keep(gt_by, conversions.image_to_numpy), qos_profile_sensor_data)
+                             keep(rx.gt, conversions.image_to_numpy), qos_profile_sensor_data)
     node.create_subscription(Image, "segmenter/labels",
-                             keep(seg_by, conversions.image_to_numpy), 10)
+                             keep(rx.seg, conversions.image_to_numpy), 10)
+
+
+def _start(node, args):
+    """The segmenter, and once it is up (its labels publisher is seen), bin_replay ->
+    (segmenter process, bin_replay process, time.monotonic() when the segmenter started)."""
+    import rclpy
+
     model = ["-p", f"model_path:={args.model}"] if args.model else []
     segmenter = subprocess.Popen(
         [_executable("segmenter"), "--ros-args", *model], stderr=subprocess.PIPE, text=True)
@@ -91,25 +114,68 @@ def main(argv=None) -> int:
     print(f"demo: bin_replay (pid {replay.pid}) publishes simulated {args.object} bins at "
           f"{args.rate} Hz; segmenter (pid {segmenter.pid}) segments them "
           f"(ROS_DOMAIN_ID={os.environ.get('ROS_DOMAIN_ID', '0')})")
+    return segmenter, replay, t0
+
+
+def _show_ready(rx: _Received, frames: int, score) -> None:
+    """Scores and prints each frame whose depth, ground truth and labels have all arrived."""
+    for stamp in sorted(s for s in rx.seg if s not in rx.done and s in rx.depth and s in rx.gt):
+        arrival, labels = rx.seg[stamp]
+        depth, gt = rx.depth[stamp][1], rx.gt[stamp][1]
+        ours, km = score(labels, depth, gt)
+        rx.scores.append((ours, km, (arrival - stamp) / 1e6))
+        rx.done.append(stamp)
+        print(f"{len(rx.done) - 1:>5} {stamp / 1e9:>14.3f} {rx.scores[-1][2]:>12.1f} "
+              f"{depth.shape[1]:>4}x{depth.shape[0]:<4} {ours:>6.3f} {km:>7.3f}",
+              flush=True)
+        if len(rx.done) >= frames:
+            break
+
+
+def _write(args, rx: _Received):
+    """The contact sheet of the first frames and the MCAP bag of them all, read back ->
+    (sheet, bag, the frames read back, whether their labels are those received)."""
+    from inseggan_ros.core import viz
+    from inseggan_ros.io import bags
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for stamp in rx.done[:6]:
+        depth, gt, lab = rx.depth[stamp][1], rx.gt[stamp][1], rx.seg[stamp][1]
+        rows.append([viz.colorize_depth(depth), viz.overlay(depth, lab), viz.overlay(depth, gt)])
+    sheet = viz.save_sheet(args.out / "segmentation_sheet.png", rows,
+                           col_titles=["depth", "segmenter labels", "ground truth"])
+    bag = args.out / f"demo_{time.strftime('%Y%m%d_%H%M%S')}"
+    with bags.BagWriter(bag) as w:
+        for stamp in rx.done:
+            w.write(stamp, rx.depth[stamp][1], rx.gt[stamp][1])
+            w.write_image("/segmenter/labels", stamp, rx.seg[stamp][1], "mono8")
+    back = bags.read_all(bag, labels_topic="/segmenter/labels")
+    same = all(np.array_equal(f.labels, rx.seg[f.stamp_ns][1]) for f in back)
+    return sheet, bag, back, same
+
+
+def main(argv=None) -> int:
+    args = _parse(argv)
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    from inseggan_ros.ros.dds import use_large_frames_profile
+
+    print(f"demo: Fast DDS profile {use_large_frames_profile()}")
+
+    import rclpy
+
+    score = _scorer()
+    rclpy.init()
+    node = rclpy.create_node("inseggan_demo")
+    rx = _Received()
+    _subscribe(node, rx)
+    segmenter, replay, t0 = _start(node, args)
     print(f"{'frame':>5} {'stamp [s]':>14} {'latency [ms]':>12} {'size':>9} {'mIoU':>6} "
           f"{'K-Means':>7}")
-    done = []  # stamps shown, in order
-    scores = []
     try:
-        while len(done) < args.frames and time.monotonic() - t0 < args.timeout:
+        while len(rx.done) < args.frames and time.monotonic() - t0 < args.timeout:
             rclpy.spin_once(node, timeout_sec=0.05)
-            for stamp in sorted(s for s in seg_by
-                                if s not in done and s in depth_by and s in gt_by):
-                arrival, labels = seg_by[stamp]
-                depth, gt = depth_by[stamp][1], gt_by[stamp][1]
-                ours, km = miou(labels, gt), miou(kmeans(-depth, gt > 0, int(gt.max())), gt)
-                scores.append((ours, km, (arrival - stamp) / 1e6))
-                done.append(stamp)
-                print(f"{len(done) - 1:>5} {stamp / 1e9:>14.3f} {scores[-1][2]:>12.1f} "
-                      f"{depth.shape[1]:>4}x{depth.shape[0]:<4} {ours:>6.3f} {km:>7.3f}",
-                      flush=True)
-                if len(done) >= args.frames:
-                    break
+            _show_ready(rx, args.frames, score)
             if segmenter.poll() is not None or (replay.poll() is not None and
                                                 time.monotonic() - t0 > args.timeout / 2):
                 break
@@ -119,33 +185,20 @@ def main(argv=None) -> int:
         node.destroy_node()
         rclpy.try_shutdown()
 
-    if len(done) < args.frames:
+    if len(rx.done) < args.frames:
         err = (segmenter.stderr.read() or "") + (replay.stderr.read() or "")
-        print(f"demo: error: {len(done)} of {args.frames} frames segmented in "
+        print(f"demo: error: {len(rx.done)} of {args.frames} frames segmented in "
               f"{args.timeout:.0f} s\n{err}", file=sys.stderr)
         return 1
-    args.out.mkdir(parents=True, exist_ok=True)
-    rows = []
-    for stamp in done[:6]:
-        depth, gt, lab = depth_by[stamp][1], gt_by[stamp][1], seg_by[stamp][1]
-        rows.append([viz.colorize_depth(depth), viz.overlay(depth, lab), viz.overlay(depth, gt)])
-    sheet = viz.save_sheet(args.out / "segmentation_sheet.png", rows,
-                           col_titles=["depth", "segmenter labels", "ground truth"])
-    bag = args.out / f"demo_{time.strftime('%Y%m%d_%H%M%S')}"
-    with bags.BagWriter(bag) as w:
-        for stamp in done:
-            w.write(stamp, depth_by[stamp][1], gt_by[stamp][1])
-            w.write_image("/segmenter/labels", stamp, seg_by[stamp][1], "mono8")
-    back = bags.read_all(bag, labels_topic="/segmenter/labels")
-    same = all(np.array_equal(f.labels, seg_by[f.stamp_ns][1]) for f in back)
-    s = np.array(scores)
+    sheet, bag, back, same = _write(args, rx)
+    s, done = np.array(rx.scores), rx.done
     print(f"demo: {len(done)} frames segmented; end-to-end latency (stamp -> labels received) "
           f"p50 {np.percentile(s[:, 2], 50):.1f} ms, p99 {np.percentile(s[:, 2], 99):.1f} ms; "
           f"mIoU {s[:, 0].mean():.3f} (K-Means on the same frames {s[:, 1].mean():.3f})")
-    sent = sum(1 for s_ in depth_by if s_ <= done[-1])
+    sent = sum(1 for s_ in rx.depth if s_ <= done[-1])
     print(f"demo: bin_replay published {sent} frames up to the last one shown; the segmenter "
-          f"answered {sum(1 for s_ in seg_by if s_ <= done[-1])} (with keep-last 1 it drops the "
-          f"frames that arrive while it is busy)")
+          f"answered {sum(1 for s_ in rx.seg if s_ <= done[-1])} (with keep-last 1 it drops "
+          f"the frames that arrive while it is busy)")
     print(f"demo: wrote {sheet} and {bag} (read back: {len(back)} frames, segmenter labels "
           f"{'identical' if same else 'DIFFERENT'})")
     return 0 if len(back) == len(done) and same else 1

@@ -28,7 +28,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -254,20 +254,73 @@ def plot_curves(history: list, path: Path) -> None:
                                  ("validation, no refinement", "val", ("miou", "recon_l1"))])
 
 
-def distill(source, train_x: np.ndarray, val: dict | None, out,
-            cfg: DistillConfig = DistillConfig(),
-            resume: bool = False, progress: bool = True,
-            train_labels: np.ndarray | None = None,
-            user_x: np.ndarray | None = None, device: str = "cpu",
-            self_fit: dict | None = None) -> dict:
-    """Fine-tune the encoder of training checkpoint `source` on `train_x` ((N, 1, 64, 64)
-    prepared frames; the first `cfg.frames` are used) and, with `cfg.lambda_label` > 0, their
-    ground-truth `train_labels` ((N, 64, 64): simulated scenes of the part); with
-    `cfg.lambda_user` > 0, also to reconstruct `user_x` ((M, 1, 64, 64) unlabelled frames of
-    the user's camera). `device`: where the encoder trains ("auto": a GPU when there is one; the
-    pseudo-labels are refined on the CPU). `self_fit`: how the labels were made when they are
-    the model's own (`selffit`), for the card. The source's own distillation, if any, is kept in
-    the new record as "previous". -> summary (also out/summary.json)."""
+@dataclass
+class _Distillation:
+    """What the phases of one distillation share: the frozen generator, the encoder trained, its
+    optimiser, the generator of the batches' draws and symmetries, and the record so far."""
+
+    cfg: DistillConfig
+    source: object
+    state: dict  # the source checkpoint's, with the new encoder's width
+    previous: dict | None  # the source's own distillation record
+    self_fit: dict | None
+    G: torch.nn.Module
+    E: torch.nn.Module
+    opt: torch.optim.Optimizer
+    gen: torch.Generator
+    out: Path
+    val: dict | None
+    tau: float
+    it: int = 0
+    best: float = -math.inf
+    history: list = field(default_factory=list)
+    before: float = 0.0  # seconds of the run before this process (a resumed run)
+    start: float = 0.0  # time.monotonic() when this process began training
+
+    def seconds(self) -> float:
+        return self.before + time.monotonic() - self.start
+
+    def resume(self) -> None:
+        """Continue from out/last.pt: the encoder, optimiser, generator and record."""
+        saved = checkpoint.load(self.out / "last.pt")
+        last = saved["distill"]
+        self.E.load_state_dict(saved["encoder"])
+        self.opt.load_state_dict(last["optimizer"])
+        self.gen.set_state(last["generator"])
+        self.it, self.best, self.history, self.before = (last["iteration"], last["best"],
+                                                         last["history"], last["seconds"])
+
+    def save(self, path: Path) -> None:
+        record = {"config": asdict(self.cfg), "source": str(self.source), "iteration": self.it,
+                  "best": self.best, "previous": self.previous, "self_fit": self.self_fit,
+                  "history": self.history, "seconds": self.seconds(),
+                  "optimizer": self.opt.state_dict(), "generator": self.gen.get_state()}
+        checkpoint.save(path, {**{k: v for k, v in self.state.items()
+                                  if k not in ("format", "distill_record")},
+                               "encoder": {k: v.cpu() for k, v in self.E.state_dict().items()},
+                               "distill": record})
+
+    def log(self, rec: dict) -> None:
+        self.history.append(rec)
+        with open(self.out / "log.jsonl", "a") as f:
+            f.write(json.dumps(rec) + "\n")
+
+    def validate(self) -> bool:
+        """Logs the validation record; -> whether its score is the best yet."""
+        v = evaluate(self.G, self.E, self.val, self.tau)
+        score = v.get("miou", -v["recon_l1"])
+        improved = score > self.best
+        self.best = max(self.best, score)
+        self.log({"kind": "val", "iteration": self.it, **v})
+        plot_curves(self.history, self.out / "curves.png")
+        tqdm.write(f"iter {self.it}: " + ", ".join(f"{k} {v_:.4f}" for k, v_ in v.items())
+                   + (" (best)" if improved else ""))
+        return improved
+
+
+def _source_models(source, cfg: DistillConfig, train_labels, user_x):
+    """The source checkpoint -> (its state, its own distillation record, G, E), refused where
+    `cfg` asks for what it or the given data cannot supply."""
     from inseggan_ros.evaluation.modelcard import distill_record
 
     state = checkpoint.load(source)
@@ -286,6 +339,90 @@ def distill(source, train_x: np.ndarray, val: dict | None, out,
                          "set); none were given")
     if cfg.lambda_user > 0 and (user_x is None or not len(user_x)):
         raise ValueError("lambda_user > 0 needs the user's frames (user_x); none were given")
+    return state, previous, G, E
+
+
+def _losses(run: _Distillation, xb, target, lb, ut, device):
+    """One batch's (l_pose, l_label, l_real, l_user); the user's batch drawn from `ut`."""
+    cfg, G, E = run.cfg, run.G, run.E
+    z = E(xb)
+    B, n, d = z.shape
+    pose = G.pose(z.reshape(B * n, d)).reshape(B, n, 6)
+    renders = G.render_poses(pose)
+    l_pose = (losses.alignment_loss(_features(target), _features(pose)) if target is not None
+              else renders.new_zeros(()))
+    l_label = (losses.label_loss(renders, lb, xb) if lb is not None
+               else renders.new_zeros(()))
+    if lb is not None and cfg.lambda_ownership > 0:
+        l_label = l_label + cfg.lambda_ownership / max(cfg.lambda_label, 1e-9) * \
+            losses.ownership_loss(renders, lb)
+    l_real = losses.pyramid_l1(G.zbuffer(renders), xb, cfg.recon_levels)
+    l_user = renders.new_zeros(())
+    if ut is not None:  # the user's frames: nothing known but the frame itself
+        ub = _symmetry_batch(ut[torch.randint(0, len(ut), (cfg.batch_size,), generator=run.gen)],
+                             None, run.gen)[0].to(device)
+        zu = E(ub)
+        upose = G.pose(zu.reshape(B * n, d)).reshape(B, n, 6)
+        l_user = losses.pyramid_l1(G.zbuffer(G.render_poses(upose)), ub, cfg.recon_levels)
+    return l_pose, l_label, l_real, l_user
+
+
+def _step(run: _Distillation, xt, pseudo, lab, ut, device) -> dict:
+    """One iteration: a batch under random symmetries, its losses, an Adam step -> its losses."""
+    cfg, opt, gen = run.cfg, run.opt, run.gen
+    idx = torch.randint(0, len(xt), (cfg.batch_size,), generator=gen)
+    xb, target, lb = (t.to(device) if t is not None else None for t in _symmetry_batch(
+        xt[idx], pseudo[idx] if pseudo is not None else None, gen,
+        lab[idx] if lab is not None else None))
+    l_pose, l_label, l_real, l_user = _losses(run, xb, target, lb, ut, device)
+    opt.zero_grad(set_to_none=True)
+    (cfg.lambda_pose * l_pose + cfg.lambda_label * l_label
+     + cfg.lambda_real * l_real + cfg.lambda_user * l_user).backward()
+    if cfg.lr_schedule == "cosine":  # a function of the iteration: a resumed run follows it
+        for group in opt.param_groups:
+            group["lr"] = cfg.lr * 0.5 * (1 + math.cos(math.pi * run.it / cfg.iterations))
+    opt.step()
+    run.it += 1
+    return {"l_pose": round(l_pose.item(), 5), "l_label": round(l_label.item(), 5),
+            "l_real": round(l_real.item(), 5), "l_user": round(l_user.item(), 5)}
+
+
+def _train_encoder(run: _Distillation, xt, pseudo, lab, ut, device, progress: bool) -> dict:
+    """Iterations up to `cfg.iterations`, logged, validated and saved -> the last losses."""
+    cfg, out = run.cfg, run.out
+    bar = tqdm(total=cfg.iterations, initial=run.it, desc="distilling", unit="it",
+               disable=not progress, dynamic_ncols=True)
+    stats = {}
+    while run.it < cfg.iterations:
+        stats = _step(run, xt, pseudo, lab, ut, device)
+        bar.update(1)
+        bar.set_postfix(pose=f"{stats['l_pose']:.3f}", label=f"{stats['l_label']:.3f}",
+                        real=f"{stats['l_real']:.3f}", user=f"{stats['l_user']:.3f}")
+        if run.it % 50 == 0:
+            run.log({"kind": "train", "iteration": run.it, **stats})
+        if run.it % cfg.eval_every == 0 or run.it == cfg.iterations:
+            if run.val is not None and run.validate():
+                run.save(out / "best.pt")
+            run.save(out / "last.pt")
+    bar.close()
+    return stats
+
+
+def distill(source, train_x: np.ndarray, val: dict | None, out,
+            cfg: DistillConfig = DistillConfig(),
+            resume: bool = False, progress: bool = True,
+            train_labels: np.ndarray | None = None,
+            user_x: np.ndarray | None = None, device: str = "cpu",
+            self_fit: dict | None = None) -> dict:
+    """Fine-tune the encoder of training checkpoint `source` on `train_x` ((N, 1, 64, 64)
+    prepared frames; the first `cfg.frames` are used) and, with `cfg.lambda_label` > 0, their
+    ground-truth `train_labels` ((N, 64, 64): simulated scenes of the part); with
+    `cfg.lambda_user` > 0, also to reconstruct `user_x` ((M, 1, 64, 64) unlabelled frames of
+    the user's camera). `device`: where the encoder trains ("auto": a GPU when there is one; the
+    pseudo-labels are refined on the CPU). `self_fit`: how the labels were made when they are
+    the model's own (`selffit`), for the card. The source's own distillation, if any, is kept in
+    the new record as "previous". -> summary (also out/summary.json)."""
+    state, previous, G, E = _source_models(source, cfg, train_labels, user_x)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     G.eval()
@@ -293,6 +430,7 @@ def distill(source, train_x: np.ndarray, val: dict | None, out,
         p.requires_grad_(False)
     tau = float(state.get("tau", -0.5))
     x = np.ascontiguousarray(train_x[:cfg.frames], dtype=np.float32)
+    # 1. pseudo-labels: the source encoder's poses, refined
     torch.manual_seed(cfg.seed)
     pseudo = (pseudo_labels(G, E, x, cfg, out / "pseudo.pt", progress)  # the source's encoder
               if cfg.lambda_pose > 0 else None)
@@ -301,107 +439,27 @@ def distill(source, train_x: np.ndarray, val: dict | None, out,
     if cfg.encoder_nf:  # an encoder of another width, pruned from or widened from this one
         state = {**state, "model_config": {**state["model_config"], "encoder_nf": cfg.encoder_nf}}
         E = (narrowed if cfg.encoder_nf <= E.width else widened)(E, cfg.encoder_nf)
+    # 2. the encoder fitted to them (and to the labels, the frames), G frozen
     device = checkpoint.pick_device(device)
     G, E = G.to(device), E.to(device)
     xt = torch.from_numpy(x)
     ut = (torch.from_numpy(np.ascontiguousarray(user_x, dtype=np.float32))
           if cfg.lambda_user > 0 else None)
-    opt = torch.optim.Adam(E.parameters(), cfg.lr, betas=(0.5, 0.999))
-    gen = torch.Generator().manual_seed(cfg.seed)
-    it, best, history, before = 0, -math.inf, [], 0.0
+    run = _Distillation(cfg, source, state, previous, self_fit, G, E,
+                        torch.optim.Adam(E.parameters(), cfg.lr, betas=(0.5, 0.999)),
+                        torch.Generator().manual_seed(cfg.seed), out, val, tau)
     if resume and (out / "last.pt").is_file():
-        saved = checkpoint.load(out / "last.pt")
-        last = saved["distill"]
-        E.load_state_dict(saved["encoder"])
-        opt.load_state_dict(last["optimizer"])
-        gen.set_state(last["generator"])
-        it, best, history, before = (last["iteration"], last["best"], last["history"],
-                                     last["seconds"])
-    start = time.monotonic()
-
-    def save(path: Path) -> None:
-        record = {"config": asdict(cfg), "source": str(source), "iteration": it, "best": best,
-                  "previous": previous, "self_fit": self_fit,
-                  "history": history, "seconds": before + time.monotonic() - start,
-                  "optimizer": opt.state_dict(), "generator": gen.get_state()}
-        checkpoint.save(path, {**{k: v for k, v in state.items()
-                                  if k not in ("format", "distill_record")},
-                               "encoder": {k: v.cpu() for k, v in E.state_dict().items()},
-                               "distill": record})
-
-    def validate() -> bool:
-        nonlocal best
-        v = evaluate(G, E, val, tau)
-        score = v.get("miou", -v["recon_l1"])
-        improved = score > best
-        best = max(best, score)
-        rec = {"kind": "val", "iteration": it, **v}
-        history.append(rec)
-        with open(out / "log.jsonl", "a") as f:
-            f.write(json.dumps(rec) + "\n")
-        plot_curves(history, out / "curves.png")
-        tqdm.write(f"iter {it}: " + ", ".join(f"{k} {v_:.4f}" for k, v_ in v.items())
-                   + (" (best)" if improved else ""))
-        return improved
-
+        run.resume()
+    run.start = time.monotonic()
     E.train()
-    if val is not None and it == 0 and validate():
-        save(out / "best.pt")  # the shipped encoder, for comparison
-    bar = tqdm(total=cfg.iterations, initial=it, desc="distilling", unit="it",
-               disable=not progress, dynamic_ncols=True)
-    stats = {}
-    while it < cfg.iterations:
-        idx = torch.randint(0, len(xt), (cfg.batch_size,), generator=gen)
-        xb, target, lb = (t.to(device) if t is not None else None for t in _symmetry_batch(
-            xt[idx], pseudo[idx] if pseudo is not None else None, gen,
-            lab[idx] if lab is not None else None))
-        z = E(xb)
-        B, n, d = z.shape
-        pose = G.pose(z.reshape(B * n, d)).reshape(B, n, 6)
-        renders = G.render_poses(pose)
-        l_pose = (losses.alignment_loss(_features(target), _features(pose)) if target is not None
-                  else renders.new_zeros(()))
-        l_label = (losses.label_loss(renders, lb, xb) if lb is not None
-                   else renders.new_zeros(()))
-        if lb is not None and cfg.lambda_ownership > 0:
-            l_label = l_label + cfg.lambda_ownership / max(cfg.lambda_label, 1e-9) * \
-                losses.ownership_loss(renders, lb)
-        l_real = losses.pyramid_l1(G.zbuffer(renders), xb, cfg.recon_levels)
-        l_user = renders.new_zeros(())
-        if ut is not None:  # the user's frames: nothing known but the frame itself
-            ub = _symmetry_batch(ut[torch.randint(0, len(ut), (cfg.batch_size,), generator=gen)],
-                                 None, gen)[0].to(device)
-            zu = E(ub)
-            upose = G.pose(zu.reshape(B * n, d)).reshape(B, n, 6)
-            l_user = losses.pyramid_l1(G.zbuffer(G.render_poses(upose)), ub, cfg.recon_levels)
-        opt.zero_grad(set_to_none=True)
-        (cfg.lambda_pose * l_pose + cfg.lambda_label * l_label
-         + cfg.lambda_real * l_real + cfg.lambda_user * l_user).backward()
-        if cfg.lr_schedule == "cosine":  # a function of the iteration: a resumed run follows it
-            for group in opt.param_groups:
-                group["lr"] = cfg.lr * 0.5 * (1 + math.cos(math.pi * it / cfg.iterations))
-        opt.step()
-        it += 1
-        stats = {"l_pose": round(l_pose.item(), 5), "l_label": round(l_label.item(), 5),
-                 "l_real": round(l_real.item(), 5), "l_user": round(l_user.item(), 5)}
-        bar.update(1)
-        bar.set_postfix(pose=f"{stats['l_pose']:.3f}", label=f"{stats['l_label']:.3f}",
-                        real=f"{stats['l_real']:.3f}", user=f"{stats['l_user']:.3f}")
-        if it % 50 == 0:
-            rec = {"kind": "train", "iteration": it, **stats}
-            history.append(rec)
-            with open(out / "log.jsonl", "a") as f:
-                f.write(json.dumps(rec) + "\n")
-        if it % cfg.eval_every == 0 or it == cfg.iterations:
-            if val is not None and validate():
-                save(out / "best.pt")
-            save(out / "last.pt")
-    bar.close()
+    if val is not None and run.it == 0 and run.validate():
+        run.save(out / "best.pt")  # the shipped encoder, for comparison
+    stats = _train_encoder(run, xt, pseudo, lab, ut, device, progress)
     if not (out / "best.pt").is_file():
-        save(out / "best.pt")
-    summary = {"iterations": it, "seconds": round(before + time.monotonic() - start, 1),
-               "best_score": best, "pseudo_label_frames": len(x), "last": stats,
-               "val": [h for h in history if h["kind"] == "val"]}
+        run.save(out / "best.pt")
+    summary = {"iterations": run.it, "seconds": round(run.seconds(), 1),
+               "best_score": run.best, "pseudo_label_frames": len(x), "last": stats,
+               "val": [h for h in run.history if h["kind"] == "val"]}
     write_json(out / "summary.json", summary)
-    plot_curves(history, out / "curves.png")
+    plot_curves(run.history, out / "curves.png")
     return summary

@@ -53,7 +53,7 @@ from __future__ import annotations
 
 import itertools
 import json
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -170,6 +170,88 @@ def _fine(values: tuple[float, ...], best: float) -> tuple[float, ...]:
     return tuple(round(v, 4) for v in (best - lo, best, best + hi) if v > 0)
 
 
+@dataclass
+class _Search:
+    """What measuring a head's variants needs: the starting discs, how a variant is made and
+    piled, the user's frames and their heights, and what is known so far: the variants
+    measured (kept in out/variants.jsonl) and those the grid skipped, each with why."""
+
+    discs: Discs
+    cfg: PileMatchConfig
+    make: Callable[[Discs, float, Path, float], Path]
+    piles: Callable[[Path, Path, int, int], np.ndarray]
+    out: Path
+    user: np.ndarray
+    ref: np.ndarray  # the user's frames' heights
+    report: Callable[[Path], dict] | None
+    progress: bool
+    done: dict = field(default_factory=dict)  # a variant measured with the same piles and user
+    # frames is not measured again
+    skipped: list = field(default_factory=list)  # the grid's variants the template cannot be
+
+    @property
+    def log(self) -> Path:
+        return self.out / "variants.jsonl"
+
+    def load(self) -> None:
+        """The variants measured before (a killed search's, another grid's)."""
+        if self.log.is_file():
+            for line in self.log.read_text().splitlines():
+                row = {"shaft": 1.0, "offset": 0.0, "stretch": 1.0, "hole": 0.0, "taper": 1.0,
+                       **json.loads(line)}
+                self.done[(*_variant(row), row["piles"], row["seed"], row["frames"])] = row
+
+    def measure(self, stage: str, grid: list[tuple[float, ...]], count: int) -> list[dict]:
+        """Each variant of `grid` piled `count` times, its heights' distance to the user's ->
+        its row (measured now or before)."""
+        cfg, done = self.cfg, self.done
+        rows = []
+        for v in tqdm(grid, desc=f"piles ({stage})", unit="variant", disable=not self.progress):
+            key = (*v, count, cfg.seed, len(self.user))
+            if key not in done:
+                a, b, c, o, e, h, t = v
+                name = (f"len{a:g}_rad{b:g}" + (f"_shaft{c:g}" if c != 1 else "")
+                        + (f"_off{o:g}" if o else "") + (f"_str{e:g}" if e != 1 else "")
+                        + (f"_hole{h:g}" if h else "") + (f"_taper{t:g}" if t != 1 else "")
+                        + f"_piles{count}")
+                file = self.make(head_variant(self.discs, *v[:5]), h,
+                                 self.out / "variants" / f"{name}.pt", t)
+                sim = self.piles(file, self.out / "piles" / name, count, cfg.seed)
+                row = {"stage": stage, "length": a, "radius": b, "shaft": c, "offset": o,
+                       "stretch": e, "hole": h, "taper": t, "piles": count, "seed": cfg.seed,
+                       "frames": len(self.user),
+                       "distance": float(wasserstein_distance(heights(sim), self.ref)),
+                       **(self.report(file) if self.report else {})}
+                with open(self.log, "a") as f:
+                    f.write(json.dumps(row) + "\n")
+                done[key] = row
+            rows.append({**done[key], "stage": stage})
+        return rows
+
+    def valid(self, v: tuple[float, ...]) -> bool:
+        """Whether the template can be variant `v`; if not, it is added to `skipped`."""
+        try:
+            d = head_variant(self.discs, *v[:5])
+            if v[5]:
+                check_ring(d[0], v[5])
+            if v[6] != 1:
+                taper_slope(d[0], v[6])
+        except ValueError as e:  # a head too short for its neighbours, offset too far, a
+            self.skipped.append({**dict(zip(VARIANT_KEYS, v)), "why": str(e)})  # ring's wall
+            return False  # too thin, a frustum's walls too steep
+        return True
+
+
+def _check_one_disc(cfg: PileMatchConfig, discs: Discs) -> None:
+    """Holes and tapers are grids of a template of one disc only."""
+    if any(cfg.holes) and len(discs) != 1:
+        raise ValueError(f"holes {cfg.holes} make a ring of one disc; valid: a template of one "
+                         f"disc, not {len(discs)}")
+    if any(t != 1 for t in cfg.tapers) and len(discs) != 1:
+        raise ValueError(f"tapers {cfg.tapers} make a frustum of one disc; valid: a template "
+                         f"of one disc, not {len(discs)}")
+
+
 def match_head(discs: Discs, user_x: np.ndarray,
                make: Callable[[Discs, float, Path, float], Path],
                piles: Callable[[Path, Path, int, int], np.ndarray], out,
@@ -198,62 +280,13 @@ def match_head(discs: Discs, user_x: np.ndarray,
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "discs.json", start)
     user = np.asarray(user_x[:cfg.frames])
-    ref = heights(user)
-    log = out / "variants.jsonl"
-    done = {}  # a variant measured with the same piles and user frames is not measured again
-    if log.is_file():
-        for line in log.read_text().splitlines():
-            row = {"shaft": 1.0, "offset": 0.0, "stretch": 1.0, "hole": 0.0, "taper": 1.0,
-                   **json.loads(line)}
-            done[(*_variant(row), row["piles"], row["seed"], row["frames"])] = row
-
-    def measure(stage: str, grid: list[tuple[float, ...]], count: int) -> list[dict]:
-        rows = []
-        for v in tqdm(grid, desc=f"piles ({stage})", unit="variant", disable=not progress):
-            key = (*v, count, cfg.seed, len(user))
-            if key not in done:
-                a, b, c, o, e, h, t = v
-                name = (f"len{a:g}_rad{b:g}" + (f"_shaft{c:g}" if c != 1 else "")
-                        + (f"_off{o:g}" if o else "") + (f"_str{e:g}" if e != 1 else "")
-                        + (f"_hole{h:g}" if h else "") + (f"_taper{t:g}" if t != 1 else "")
-                        + f"_piles{count}")
-                file = make(head_variant(discs, *v[:5]), h, out / "variants" / f"{name}.pt", t)
-                sim = piles(file, out / "piles" / name, count, cfg.seed)
-                row = {"stage": stage, "length": a, "radius": b, "shaft": c, "offset": o,
-                       "stretch": e, "hole": h, "taper": t, "piles": count, "seed": cfg.seed,
-                       "frames": len(user),
-                       "distance": float(wasserstein_distance(heights(sim), ref)),
-                       **(report(file) if report else {})}
-                with open(log, "a") as f:
-                    f.write(json.dumps(row) + "\n")
-                done[key] = row
-            rows.append({**done[key], "stage": stage})
-        return rows
-
-    if any(cfg.holes) and len(discs) != 1:
-        raise ValueError(f"holes {cfg.holes} make a ring of one disc; valid: a template of one "
-                         f"disc, not {len(discs)}")
-    if any(t != 1 for t in cfg.tapers) and len(discs) != 1:
-        raise ValueError(f"tapers {cfg.tapers} make a frustum of one disc; valid: a template "
-                         f"of one disc, not {len(discs)}")
-
-    skipped = []  # the grid's variants the template cannot be, each with why
-
-    def valid(v: tuple[float, ...]) -> bool:
-        try:
-            d = head_variant(discs, *v[:5])
-            if v[5]:
-                check_ring(d[0], v[5])
-            if v[6] != 1:
-                taper_slope(d[0], v[6])
-        except ValueError as e:  # a head too short for its neighbours, offset too far, a
-            skipped.append({**dict(zip(VARIANT_KEYS, v)), "why": str(e)})  # ring's wall too
-            return False  # thin, a frustum's walls too steep
-        return True
-
-    coarse = measure("coarse", [v for v in itertools.product(
+    search = _Search(discs, cfg, make, piles, out, user, heights(user), report, progress)
+    search.load()
+    _check_one_disc(cfg, discs)
+    # the coarse grid
+    coarse = search.measure("coarse", [v for v in itertools.product(
         cfg.lengths, cfg.radii, cfg.shafts, cfg.offsets, cfg.stretches, cfg.holes, cfg.tapers)
-        if valid(v)], cfg.piles)
+        if search.valid(v)], cfg.piles)
     if not coarse:
         raise ValueError("no variant of the grid keeps every disc of the template; valid: "
                          "longer heads or smaller offsets")
@@ -261,13 +294,13 @@ def match_head(discs: Discs, user_x: np.ndarray,
     fine = []
     if cfg.fine_piles:  # length and radius about the best, at its shaft, offset, stretch,
         # hole and taper
-        fine = measure("fine", [v for a in _fine(cfg.lengths, best["length"])
-                                for b in _fine(cfg.radii, best["radius"])
-                                if valid(v := (a, b, *_variant(best)[2:]))],
-                       cfg.fine_piles)
+        fine = search.measure("fine", [v for a in _fine(cfg.lengths, best["length"])
+                                       for b in _fine(cfg.radii, best["radius"])
+                                       if search.valid(v := (a, b, *_variant(best)[2:]))],
+                              cfg.fine_piles)
         best = min(fine, key=lambda r: r["distance"])
     summary = {"config": config, "discs_before": start,
-               "coarse": coarse, "fine": fine, "best": best, "skipped": skipped,
+               "coarse": coarse, "fine": fine, "best": best, "skipped": search.skipped,
                "discs": [list(s) for s in head_variant(discs, *_variant(best)[:5])],
                "hole": _variant(best)[5], "taper": _variant(best)[6]}
     _plot(coarse, cfg, out / "match.png")

@@ -37,7 +37,7 @@ import itertools
 import json
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -291,6 +291,112 @@ def _plot(history: list, path: Path) -> None:
                                  ("validation", "val", ("recon_l1", "shape_iou"))])
 
 
+@dataclass
+class _ShapeFit:
+    """What the phases of one shape fit share: the convex model fitted (its checkpoint state,
+    template, encoder), the optimiser, the generator of the batches' draws and symmetries, the
+    held-out frames and the record so far."""
+
+    cfg: ShapeFitConfig
+    src: Path
+    given: list | None  # the starting discs given, for the record
+    state: dict
+    G: ConvexGenerator
+    E: torch.nn.Module
+    opt: torch.optim.Optimizer
+    gen: torch.Generator
+    out: Path
+    xv: torch.Tensor | None  # the validation frames, on the device
+    report: Callable[[ConvexGenerator], dict] | None
+    it: int = 0
+    history: list = field(default_factory=list)
+    before: float = 0.0  # seconds of the fit before this process (a resumed one)
+    start: float = 0.0  # time.monotonic() when this process began fitting
+
+    def seconds(self) -> float:
+        return self.before + time.monotonic() - self.start
+
+    def resume(self, device: str) -> None:
+        """Continue from out/last.pt, a fit of the same model, config and discs only."""
+        saved = checkpoint.load(self.out / "last.pt")
+        rec = saved["shape_fit"]
+        if (rec["config"] != asdict(self.cfg) or rec["source"] != str(self.src)
+                or rec.get("discs") != self.given):
+            raise ValueError(f"{self.out}: holds a shape fit of {rec['source']} with "
+                             f"{rec['config']}; valid: the same model and config to resume, "
+                             "or another --out")
+        self.G.load_state_dict({k: v.to(device) for k, v in saved["generator"].items()})
+        self.E.load_state_dict({k: v.to(device) for k, v in saved["encoder"].items()})
+        self.opt.load_state_dict(rec["optimizer"])
+        self.gen.set_state(rec["generator_rng"])
+        self.it, self.history, self.before = rec["iteration"], rec["history"], rec["seconds"]
+
+    def save(self, name: str = "last.pt") -> None:
+        rec = {"config": asdict(self.cfg), "source": str(self.src), "discs": self.given,
+               "iteration": self.it, "history": self.history,
+               "seconds": self.seconds(), "optimizer": self.opt.state_dict(),
+               "generator_rng": self.gen.get_state()}
+        checkpoint.save(self.out / name, {
+            **self.state,
+            "generator": {k: v.detach().cpu() for k, v in self.G.state_dict().items()},
+            "encoder": {k: v.detach().cpu() for k, v in self.E.state_dict().items()},
+            "shape_fit": rec})
+
+    def log(self, rec: dict) -> None:
+        self.history.append(rec)
+        with open(self.out / "log.jsonl", "a") as f:
+            f.write(json.dumps(rec) + "\n")
+
+    def validate(self) -> bool:
+        """Logs the validation record; -> whether its reconstruction is the best yet."""
+        rec = {"kind": "val", "iteration": self.it}
+        improved = False
+        if self.xv is not None:
+            self.E.eval()
+            with torch.no_grad():
+                rec["recon_l1"] = round(float(_recon(self.G, self.E, self.xv, 1)), 5)
+            self.E.train()
+            seen = [h["recon_l1"] for h in self.history if h["kind"] == "val"]
+            improved = not seen or rec["recon_l1"] < min(seen)
+        if self.report is not None:
+            shape = self.report(self.G)
+            rec.update(shape_iou=shape["iou"], dims_mm=shape["dims_template_mm"],
+                       true_dims_mm=shape["dims_true_mm"])
+        self.log(rec)
+        _plot(self.history, self.out / "curves.png")
+        fields = ", ".join(f"{k} {v}" for k, v in rec.items() if k not in ("kind", "iteration"))
+        if fields:  # nothing to say without validation frames or a true part
+            tqdm.write(f"iter {self.it}: {fields}" + (" (best)" if improved else ""))
+        return improved
+
+
+def _fit(f: _ShapeFit, x: torch.Tensor, device: str, progress: bool) -> None:
+    """Iterations up to `cfg.iterations`: template, encoder and pose decoder fitted to
+    reconstruct batches of `x` under random symmetries, logged, validated and saved."""
+    cfg = f.cfg
+    bar = tqdm(total=cfg.iterations, initial=f.it, desc="shape fit", unit="it",
+               disable=not progress, dynamic_ncols=True)
+    running = math.nan
+    while f.it < cfg.iterations:
+        idx = torch.randint(0, len(x), (cfg.batch_size,), generator=f.gen)
+        xb = _batch(x, idx, f.gen).to(device)  # the symmetries drawn on the CPU
+        loss = _recon(f.G, f.E, xb, cfg.recon_levels)
+        f.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        f.opt.step()
+        f.it += 1
+        running = loss.item() if math.isnan(running) else 0.95 * running + 0.05 * loss.item()
+        bar.update(1)
+        bar.set_postfix(recon=f"{running:.4f}")
+        if f.it % 50 == 0:
+            f.log({"kind": "train", "iteration": f.it, "l_recon": round(running, 5)})
+        if f.it % cfg.eval_every == 0 or f.it == cfg.iterations:
+            if f.validate():
+                f.save("best.pt")
+            f.save()
+    bar.close()
+
+
 def fit_shape(model, train_x: np.ndarray, out, cfg: ShapeFitConfig = ShapeFitConfig(),
               val_x: np.ndarray | None = None, progress: bool = True,
               report: Callable[[ConvexGenerator], dict] | None = None,
@@ -316,6 +422,7 @@ def fit_shape(model, train_x: np.ndarray, out, cfg: ShapeFitConfig = ShapeFitCon
     if discs is not None and cfg.start != "discs":
         raise ValueError(f"discs given for a template started as {cfg.start!r}; valid: start "
                          "'discs'")
+    # 1. the convex template started from the rod, with the rod's encoder and pose decoder
     state, G, E = convex_from_rod(checkpoint.load(src), cfg, src, x, discs)
     given = [list(map(float, d)) for d in discs] if discs is not None else None
     xv = (torch.from_numpy(np.ascontiguousarray(val_x[:cfg.val_frames], dtype=np.float32))
@@ -323,95 +430,27 @@ def fit_shape(model, train_x: np.ndarray, out, cfg: ShapeFitConfig = ShapeFitCon
     device = checkpoint.pick_device(device)
     G, E = G.to(device), E.to(device)
     xv = xv.to(device) if xv is not None else None
+    # 2. all three fitted to reconstruct the frames
     template = [getattr(G, k) for k in G.template_parameters]
     opt = torch.optim.Adam([{"params": list(E.parameters()) + list(G.pose.parameters()),
                              "lr": cfg.encoder_lr},
                             {"params": template, "lr": cfg.template_lr}], betas=(0.5, 0.999))
-    gen = torch.Generator().manual_seed(cfg.seed)
-    it, history, before = 0, [], 0.0
+    f = _ShapeFit(cfg, src, given, state, G, E, opt, torch.Generator().manual_seed(cfg.seed),
+                  out, xv, report)
     if (out / "last.pt").is_file():
-        saved = checkpoint.load(out / "last.pt")
-        rec = saved["shape_fit"]
-        if (rec["config"] != asdict(cfg) or rec["source"] != str(src)
-                or rec.get("discs") != given):
-            raise ValueError(f"{out}: holds a shape fit of {rec['source']} with "
-                             f"{rec['config']}; valid: the same model and config to resume, "
-                             "or another --out")
-        G.load_state_dict({k: v.to(device) for k, v in saved["generator"].items()})
-        E.load_state_dict({k: v.to(device) for k, v in saved["encoder"].items()})
-        opt.load_state_dict(rec["optimizer"])
-        gen.set_state(rec["generator_rng"])
-        it, history, before = rec["iteration"], rec["history"], rec["seconds"]
-    start = time.monotonic()
-
-    def save(name: str = "last.pt") -> None:
-        rec = {"config": asdict(cfg), "source": str(src), "discs": given, "iteration": it,
-               "history": history,
-               "seconds": before + time.monotonic() - start, "optimizer": opt.state_dict(),
-               "generator_rng": gen.get_state()}
-        checkpoint.save(out / name, {
-            **state, "generator": {k: v.detach().cpu() for k, v in G.state_dict().items()},
-            "encoder": {k: v.detach().cpu() for k, v in E.state_dict().items()},
-            "shape_fit": rec})
-
-    def validate() -> bool:
-        """Logs the validation record; -> whether its reconstruction is the best yet."""
-        rec = {"kind": "val", "iteration": it}
-        improved = False
-        if xv is not None:
-            E.eval()
-            with torch.no_grad():
-                rec["recon_l1"] = round(float(_recon(G, E, xv, 1)), 5)
-            E.train()
-            seen = [h["recon_l1"] for h in history if h["kind"] == "val"]
-            improved = not seen or rec["recon_l1"] < min(seen)
-        if report is not None:
-            shape = report(G)
-            rec.update(shape_iou=shape["iou"], dims_mm=shape["dims_template_mm"],
-                       true_dims_mm=shape["dims_true_mm"])
-        history.append(rec)
-        with open(out / "log.jsonl", "a") as f:
-            f.write(json.dumps(rec) + "\n")
-        _plot(history, out / "curves.png")
-        fields = ", ".join(f"{k} {v}" for k, v in rec.items() if k not in ("kind", "iteration"))
-        if fields:  # nothing to say without validation frames or a true part
-            tqdm.write(f"iter {it}: {fields}" + (" (best)" if improved else ""))
-        return improved
-
-    if it == 0 and validate():
-        save("best.pt")
+        f.resume(device)
+    f.start = time.monotonic()
+    if f.it == 0 and f.validate():
+        f.save("best.pt")
     E.train()
-    bar = tqdm(total=cfg.iterations, initial=it, desc="shape fit", unit="it",
-               disable=not progress, dynamic_ncols=True)
-    running = math.nan
-    while it < cfg.iterations:
-        idx = torch.randint(0, len(x), (cfg.batch_size,), generator=gen)
-        xb = _batch(x, idx, gen).to(device)  # the symmetries drawn on the CPU
-        loss = _recon(G, E, xb, cfg.recon_levels)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        opt.step()
-        it += 1
-        running = loss.item() if math.isnan(running) else 0.95 * running + 0.05 * loss.item()
-        bar.update(1)
-        bar.set_postfix(recon=f"{running:.4f}")
-        if it % 50 == 0:
-            rec = {"kind": "train", "iteration": it, "l_recon": round(running, 5)}
-            history.append(rec)
-            with open(out / "log.jsonl", "a") as f:
-                f.write(json.dumps(rec) + "\n")
-        if it % cfg.eval_every == 0 or it == cfg.iterations:
-            if validate():
-                save("best.pt")
-            save()
-    bar.close()
+    _fit(f, x, device, progress)
     if not (out / "last.pt").is_file():
-        save()
-    vals = [h for h in history if h["kind"] == "val"]
+        f.save()
+    vals = [h for h in f.history if h["kind"] == "val"]
     scored = [h for h in vals if "recon_l1" in h]
     best = min(scored, key=lambda h: h["recon_l1"]) if scored else None
-    summary = {"source": str(src), "config": asdict(cfg), "discs": given, "iterations": it,
-               "seconds": round(before + time.monotonic() - start, 1), "frames": len(x),
+    summary = {"source": str(src), "config": asdict(cfg), "discs": given, "iterations": f.it,
+               "seconds": round(f.seconds(), 1), "frames": len(x),
                "first": vals[0] if vals else None, "last": vals[-1] if vals else None,
                "best": best, "model": str(out / ("best.pt" if best else "last.pt"))}
     write_json(out / "summary.json", summary)

@@ -429,11 +429,193 @@ def train(cfg: TrainConfig, train_data: dict, val_data: dict | None, out: Path,
             gc.collect()
 
 
-def _train(cfg, train_data, val_data, out, prep_cfg, data_info, device, resume, progress):
+@dataclass
+class _Session:
+    """What the phases of one training process share besides its `Run`: where it writes, whether
+    it is the main rank, the validation frames and samples, and its clock and image counts."""
+
+    run: Run
+    out: Path
+    device: str
+    is_main: bool
+    prep_cfg: dict
+    data_info: dict
+    val_data: dict | None
+    sample_x: torch.Tensor | None = None  # the validation frames drawn in samples/*.png
+    start: float = 0.0  # time.monotonic() when this process began training
+    seen: int = 0  # images trained on by this process
+    window_t: float = 0.0  # the throughput's window: its start, its images
+    window_n: int = 0
+
+    def elapsed(self) -> float:
+        return self.run.elapsed + time.monotonic() - self.start
+
+    def checkpoint_now(self, best: bool = False) -> None:
+        if not self.is_main:
+            return
+        state = self.run.state(self.prep_cfg, self.data_info)
+        state["elapsed_seconds"] = self.elapsed()
+        checkpoint.save(self.out / "last.pt", state)
+        if best:
+            checkpoint.save(self.out / "best.pt", state)
+
+    def validate(self) -> bool:
+        """Validation record (and samples, curves); returns whether it is the best so far."""
+        run, out = self.run, self.out
+        v = evaluate(run, self.val_data, self.device, run.cfg.eval_frames)
+        rec = {"kind": "val", "iteration": run.iteration, "seconds": round(self.elapsed(), 1),
+               **v}
+        run.history.append(rec)
+        with open(out / "log.jsonl", "a") as f:
+            f.write(json.dumps(rec) + "\n")
+        score = v.get("miou", -v["recon_l1"])
+        improved = score > run.best
+        if improved:
+            run.best, run.tau = score, v["tau"]
+        save_samples(run, self.sample_x, out / "samples" / f"iter_{run.iteration:06d}.png",
+                     v["tau"])
+        plot_curves(run.history, out / "curves.png")
+        tqdm.write(f"iter {run.iteration}: " + ", ".join(
+            f"{k} {val:.4f}" for k, val in v.items()) + (" (best)" if improved else ""))
+        return improved
+
+
+def _resume(run: Run, out: Path, resume: bool, device: str, is_main: bool) -> None:
+    """Continue from out/last.pt with `resume` (the same model config only); without it, refuse
+    a folder that holds a run."""
+    last = out / "last.pt"
+    if resume and last.is_file():
+        state = checkpoint.load(last, map_location=device)
+        saved = TrainConfig.from_dict(state["train_config"])
+        if saved.model != run.cfg.model:
+            raise ValueError(f"{last}: was trained with {saved.model}, not {run.cfg.model}; "
+                             "resume with the same config or choose another --out")
+        restore(run, state)
+        if is_main:
+            print(f"resumed from {last} at iteration {run.iteration}")
+    elif last.is_file():
+        raise FileExistsError(f"{out} holds a run already (last.pt): pass --resume to continue "
+                              "it, or choose another --out")
+
+
+def _loader(cfg: TrainConfig, train_data: dict, rank: int, iteration: int, distributed: bool,
+            amp: bool):
+    """-> (the training frames' DataLoader, its sampler): drawn with replacement from a
+    generator seeded by rank and iteration, or a DistributedSampler's share."""
     from torch.utils.data import DataLoader, RandomSampler
 
     from inseggan_ros.data.datasets import DepthTensorDataset
 
+    dataset = DepthTensorDataset(train_data, augment=cfg.augment,
+                                 rotation=20.0 if cfg.rotate else 0.0)
+    gen = torch.Generator().manual_seed(cfg.seed * 1000 + rank + iteration)
+    if distributed:
+        from torch.utils.data.distributed import DistributedSampler
+
+        sampler = DistributedSampler(dataset, seed=cfg.seed + iteration, drop_last=True)
+    else:
+        sampler = RandomSampler(dataset, replacement=True, num_samples=10**9, generator=gen)
+    loader = DataLoader(dataset, batch_size=cfg.batch_size, sampler=sampler, drop_last=True,
+                        num_workers=0, pin_memory=amp)
+    return loader, sampler
+
+
+def _log_train(s: _Session, stats: dict, bar) -> None:
+    """The training record of the last `log_every` iterations (throughput, losses)."""
+    run = s.run
+    now = time.monotonic()
+    ips = s.window_n / max(now - s.window_t, 1e-9)
+    s.window_t, s.window_n = now, 0
+    rec = {"kind": "train", "iteration": run.iteration, "seconds": round(s.elapsed(), 1),
+           "images_per_s": round(ips, 1), "resets": run.resets,
+           **{k: round(v, 5) for k, v in stats.items()}}
+    run.history.append(rec)
+    if s.is_main:
+        with open(s.out / "log.jsonl", "a") as f:
+            f.write(json.dumps(rec) + "\n")
+        bar.set_postfix(it=run.iteration, d=f"{stats['loss_d']:.2f}",
+                        g=f"{stats['loss_g']:.2f}",
+                        a=f"{stats['l_a']:.2f}", p=f"{stats['l_p']:.3f}",
+                        r=f"{stats['l_real']:.3f}", ips=f"{ips:.0f}")
+
+
+def _iterate(s: _Session, batches, loader, sampler, distributed: bool, amp: bool,
+             progress: bool) -> dict:
+    """Iterations until max_iterations or max_minutes, logged, validated and checkpointed (from
+    the starting point's validation on) -> the last iteration's losses."""
+    run, cfg = s.run, s.run.cfg
+    budget = cfg.max_minutes * 60 if cfg.max_minutes > 0 else math.inf
+    s.start = s.window_t = time.monotonic()
+    # with a time budget the bar counts its seconds (the iteration cap is then only a bound)
+    by_time = budget < math.inf
+    bar = tqdm(total=round(budget) if by_time else cfg.max_iterations,
+               initial=min(round(run.elapsed), round(budget)) if by_time else run.iteration,
+               desc="training", unit="s" if by_time else "it",
+               disable=not (progress and s.is_main), dynamic_ncols=True)
+    stats = {}
+    if s.is_main and s.val_data is not None and run.iteration == 0:
+        # the starting point, so that curves show what training changed; it is best.pt until a
+        # later validation scores higher (a run that never does keeps its starting weights)
+        s.checkpoint_now(best=s.validate())
+    try:
+        while run.iteration < cfg.max_iterations and s.elapsed() < budget:
+            try:
+                real = next(batches)
+            except StopIteration:
+                if distributed:
+                    sampler.set_epoch(run.iteration)
+                batches = iter(loader)
+                real = next(batches)
+            stats = train_step(run, real.to(s.device, non_blocking=True), amp)
+            run.iteration += 1
+            s.seen += real.shape[0]
+            s.window_n += real.shape[0]
+            guard_divergence(run, stats)
+            bar.update(min(round(s.elapsed()), bar.total) - bar.n if by_time else 1)
+            if run.iteration % cfg.log_every == 0:
+                _log_train(s, stats, bar)
+            if run.iteration % cfg.eval_every == 0 or run.iteration == cfg.max_iterations:
+                improved = s.is_main and s.val_data is not None and s.validate()
+                s.checkpoint_now(best=improved)
+            elif run.iteration % cfg.checkpoint_every == 0:
+                s.checkpoint_now()
+    finally:
+        bar.close()
+    return stats
+
+
+def _finish(s: _Session, stats: dict, world_size: int, distributed: bool) -> dict:
+    """The last weights validated (when the last validation was earlier) and checkpointed, the
+    ranks' weights' checksums gathered -> the summary (also summary.json, curves.png)."""
+    run, out = s.run, s.out
+    # a run stopped by its time budget between validations: validate its last weights too, so
+    # that their tau (calibrated from the frames on a bag) is the one stored
+    validated = [h["iteration"] for h in run.history if h["kind"] == "val"]
+    improved = (s.is_main and s.val_data is not None and bool(validated)
+                and validated[-1] != run.iteration and s.validate())
+    s.checkpoint_now(best=improved or not (out / "best.pt").exists())
+    checksums = [weights_checksum(run)]
+    if distributed:  # every rank reports the checksum of its weights: DDP keeps them identical
+        import torch.distributed as dist
+
+        checksums = [None] * dist.get_world_size()
+        dist.all_gather_object(checksums, weights_checksum(run))
+    ips = s.seen / max(time.monotonic() - s.start, 1e-9)
+    summary = {"iterations": run.iteration, "seconds": round(s.elapsed(), 1),
+               "images_per_s_this_process": round(ips, 1),
+               "best_score": run.best, "tau": run.tau, "resets": run.resets,
+               "device": s.device, "world_size": world_size,
+               "weights_sha256_per_rank": checksums, "last": stats}
+    if s.is_main:
+        write_json(out / "summary.json", summary)
+        if run.history:
+            plot_curves(run.history, out / "curves.png")
+    if distributed:  # no rank leaves (and destroys its group) while another still works
+        dist.barrier()
+    return summary
+
+
+def _train(cfg, train_data, val_data, out, prep_cfg, data_info, device, resume, progress):
     world_size, rank, local_rank = torchrun_env()
     distributed = world_size > 1
     if distributed:
@@ -444,19 +626,7 @@ def _train(cfg, train_data, val_data, out, prep_cfg, data_info, device, resume, 
     is_main = rank == 0
     seed_everything(cfg.seed + rank)
     run = make_run(cfg, device)
-    last = out / "last.pt"
-    if resume and last.is_file():
-        state = checkpoint.load(last, map_location=device)
-        saved = TrainConfig.from_dict(state["train_config"])
-        if saved.model != cfg.model:
-            raise ValueError(f"{last}: was trained with {saved.model}, not {cfg.model}; "
-                             "resume with the same config or choose another --out")
-        restore(run, state)
-        if is_main:
-            print(f"resumed from {last} at iteration {run.iteration}")
-    elif last.is_file():
-        raise FileExistsError(f"{out} holds a run already (last.pt): pass --resume to continue "
-                              "it, or choose another --out")
+    _resume(run, out, resume, device, is_main)
     if run.iteration == 0 and cfg.template_init == "data" and isinstance(run.G, ConvexGenerator):
         run.G.init_from_data(train_data["x"], cfg.model.n_instances)  # of the data's size
     if distributed:
@@ -465,128 +635,14 @@ def _train(cfg, train_data, val_data, out, prep_cfg, data_info, device, resume, 
         ids = [torch.device(device).index] if device.startswith("cuda") else None
         run.G, run.D, run.E = (DDP(m, device_ids=ids) for m in (run.G, run.D, run.E))
     amp = device.startswith("cuda")
-
-    dataset = DepthTensorDataset(train_data, augment=cfg.augment,
-                                 rotation=20.0 if cfg.rotate else 0.0)
-    gen = torch.Generator().manual_seed(cfg.seed * 1000 + rank + run.iteration)
-    if distributed:
-        from torch.utils.data.distributed import DistributedSampler
-
-        sampler = DistributedSampler(dataset, seed=cfg.seed + run.iteration, drop_last=True)
-    else:
-        sampler = RandomSampler(dataset, replacement=True, num_samples=10**9, generator=gen)
-    loader = DataLoader(dataset, batch_size=cfg.batch_size, sampler=sampler, drop_last=True,
-                        num_workers=0, pin_memory=amp)
+    loader, sampler = _loader(cfg, train_data, rank, run.iteration, distributed, amp)
     batches = iter(loader)
     if is_main:
         out.mkdir(parents=True, exist_ok=True)
         (out / "samples").mkdir(exist_ok=True)
         write_json(out / "config.json", cfg.to_dict())
-    sample_x = None
+    s = _Session(run, out, device, is_main, prep_cfg, data_info, val_data)
     if val_data is not None:
-        sample_x = torch.from_numpy(val_data["x"][:6]).to(device)
-
-    budget = cfg.max_minutes * 60 if cfg.max_minutes > 0 else math.inf
-    start, seen, window_t, window_n = time.monotonic(), 0, time.monotonic(), 0
-    # with a time budget the bar counts its seconds (the iteration cap is then only a bound)
-    by_time = budget < math.inf
-    bar = tqdm(total=round(budget) if by_time else cfg.max_iterations,
-               initial=min(round(run.elapsed), round(budget)) if by_time else run.iteration,
-               desc="training", unit="s" if by_time else "it",
-               disable=not (progress and is_main), dynamic_ncols=True)
-    stats = {}
-
-    def elapsed():
-        return run.elapsed + time.monotonic() - start
-
-    def checkpoint_now(best: bool = False):
-        if not is_main:
-            return
-        state = run.state(prep_cfg, data_info)
-        state["elapsed_seconds"] = elapsed()
-        checkpoint.save(last, state)
-        if best:
-            checkpoint.save(out / "best.pt", state)
-
-    def validate() -> bool:
-        """Validation record (and samples, curves); returns whether it is the best so far."""
-        v = evaluate(run, val_data, device, cfg.eval_frames)
-        rec = {"kind": "val", "iteration": run.iteration, "seconds": round(elapsed(), 1), **v}
-        run.history.append(rec)
-        with open(out / "log.jsonl", "a") as f:
-            f.write(json.dumps(rec) + "\n")
-        score = v.get("miou", -v["recon_l1"])
-        improved = score > run.best
-        if improved:
-            run.best, run.tau = score, v["tau"]
-        save_samples(run, sample_x, out / "samples" / f"iter_{run.iteration:06d}.png", v["tau"])
-        plot_curves(run.history, out / "curves.png")
-        tqdm.write(f"iter {run.iteration}: " + ", ".join(
-            f"{k} {val:.4f}" for k, val in v.items()) + (" (best)" if improved else ""))
-        return improved
-
-    if is_main and val_data is not None and run.iteration == 0:
-        # the starting point, so that curves show what training changed; it is best.pt until a
-        # later validation scores higher (a run that never does keeps its starting weights)
-        checkpoint_now(best=validate())
-    try:
-        while run.iteration < cfg.max_iterations and elapsed() < budget:
-            try:
-                real = next(batches)
-            except StopIteration:
-                if distributed:
-                    sampler.set_epoch(run.iteration)
-                batches = iter(loader)
-                real = next(batches)
-            stats = train_step(run, real.to(device, non_blocking=True), amp)
-            run.iteration += 1
-            seen += real.shape[0]
-            window_n += real.shape[0]
-            guard_divergence(run, stats)
-            bar.update(min(round(elapsed()), bar.total) - bar.n if by_time else 1)
-            if run.iteration % cfg.log_every == 0:
-                now = time.monotonic()
-                ips = window_n / max(now - window_t, 1e-9)
-                window_t, window_n = now, 0
-                rec = {"kind": "train", "iteration": run.iteration, "seconds": round(elapsed(), 1),
-                       "images_per_s": round(ips, 1), "resets": run.resets,
-                       **{k: round(v, 5) for k, v in stats.items()}}
-                run.history.append(rec)
-                if is_main:
-                    with open(out / "log.jsonl", "a") as f:
-                        f.write(json.dumps(rec) + "\n")
-                    bar.set_postfix(it=run.iteration, d=f"{stats['loss_d']:.2f}",
-                                    g=f"{stats['loss_g']:.2f}",
-                                    a=f"{stats['l_a']:.2f}", p=f"{stats['l_p']:.3f}",
-                                    r=f"{stats['l_real']:.3f}", ips=f"{ips:.0f}")
-            if run.iteration % cfg.eval_every == 0 or run.iteration == cfg.max_iterations:
-                improved = is_main and val_data is not None and validate()
-                checkpoint_now(best=improved)
-            elif run.iteration % cfg.checkpoint_every == 0:
-                checkpoint_now()
-    finally:
-        bar.close()
-    # a run stopped by its time budget between validations: validate its last weights too, so
-    # that their tau (calibrated from the frames on a bag) is the one stored
-    validated = [h["iteration"] for h in run.history if h["kind"] == "val"]
-    improved = (is_main and val_data is not None and bool(validated)
-                and validated[-1] != run.iteration and validate())
-    checkpoint_now(best=improved or not (out / "best.pt").exists())
-    checksums = [weights_checksum(run)]
-    if distributed:  # every rank reports the checksum of its weights: DDP keeps them identical
-        import torch.distributed as dist
-
-        checksums = [None] * dist.get_world_size()
-        dist.all_gather_object(checksums, weights_checksum(run))
-    summary = {"iterations": run.iteration, "seconds": round(elapsed(), 1),
-               "images_per_s_this_process": round(seen / max(time.monotonic() - start, 1e-9), 1),
-               "best_score": run.best, "tau": run.tau, "resets": run.resets,
-               "device": device, "world_size": world_size,
-               "weights_sha256_per_rank": checksums, "last": stats}
-    if is_main:
-        write_json(out / "summary.json", summary)
-        if run.history:
-            plot_curves(run.history, out / "curves.png")
-    if distributed:  # no rank leaves (and destroys its group) while another still works
-        dist.barrier()
-    return summary
+        s.sample_x = torch.from_numpy(val_data["x"][:6]).to(device)
+    stats = _iterate(s, batches, loader, sampler, distributed, amp, progress)
+    return _finish(s, stats, world_size, distributed)

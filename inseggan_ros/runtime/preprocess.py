@@ -429,8 +429,46 @@ def _floor_regions(flat: np.ndarray, min_area: int, missing: np.ndarray | None =
     return (area >= max(1, area.max() // 8))[labels] & (flat > 0), surroundings
 
 
-def _find_bin(d: np.ndarray, valid: np.ndarray, tolerance: float | None) -> BinRegion:
-    h, w = d.shape
+@dataclass(frozen=True)
+class _Grid:
+    """The frame as `find_bin` searches it: every `step`th pixel of every `step`th row
+    (`small`), those with a reading (`ok`) and those without (`missing`, uint8)."""
+
+    step: int
+    small: np.ndarray
+    ok: np.ndarray
+    missing: np.ndarray
+
+    @staticmethod
+    def of(d: np.ndarray, valid: np.ndarray) -> "_Grid":
+        step = max(1, round(math.sqrt(d.size / 100_000)))
+        small, ok = d[::step, ::step], valid[::step, ::step]
+        return _Grid(step, small, ok, (~ok).view(np.uint8))
+
+    def heights(self, plane: Plane, level: float | None = None) -> np.ndarray:
+        """Height above `plane` (less `level`) at each grid pixel, NaN where there is no
+        reading."""
+        a, b, c = plane
+        small, step = self.small, self.step
+        above = plane_depth((a * step, b * step, c), (0, 0, small.shape[1], small.shape[0]))
+        height = above - small if level is None else above - small - np.float32(level)
+        height[~self.ok] = np.nan
+        return height
+
+    def upsampled(self, mask: np.ndarray, y0: int, y1: int, x0: int, x1: int) -> np.ndarray:
+        """A grid mask at full resolution (uint8), cut to rows y0:y1 and columns x0:x1, then
+        grown by a grid pixel: a grid pixel stands for step x step full-resolution ones."""
+        small, step = self.small, self.step
+        full = cv2.resize(mask.view(np.uint8), (small.shape[1] * step, small.shape[0] * step),
+                          interpolation=cv2.INTER_NEAREST)[y0:y1, x0:x1]
+        if step > 1:
+            full = cv2.dilate(full, np.ones((step + 1, step + 1), np.uint8))
+        return full
+
+
+def _dominant_plane(d: np.ndarray, valid: np.ndarray, tolerance: float | None
+                    ) -> tuple[Plane, float]:
+    """`find_bin` step 1: the plane most of the frame lies on -> (it, the tolerance)."""
     u, v, z = _grid_points(d, valid)
     if len(z) < 10:
         raise _no_bin(d.shape, "too few valid pixels")
@@ -438,84 +476,102 @@ def _find_bin(d: np.ndarray, valid: np.ndarray, tolerance: float | None) -> BinR
     plane = _fit_plane(u, v, z, tol)
     if plane is None:
         raise _no_bin(d.shape, "no plane in the frame")
-    step = max(1, round(math.sqrt(d.size / 100_000)))
-    small, ok = d[::step, ::step], valid[::step, ::step]
-    a, b, c = plane
-    height = plane_depth((a * step, b * step, c), (0, 0, small.shape[1], small.shape[0])) - small
-    height[~ok] = np.nan
-    hv = height[ok]
+    return plane, tol
+
+
+def _floor(grid: _Grid, height: np.ndarray, tol: float, shape: tuple[int, int]):
+    """`find_bin` step 2: the floor among the modes of the grid's heights above the dominant
+    plane, lowest first -> (its grid mask, its level above the plane, the surroundings seen)."""
+    hv = height[grid.ok]
     hv = hv[np.abs(hv) < 0.5]
     if hv.size == 0:
-        raise _no_bin(d.shape, "no depth near the dominant plane")
+        raise _no_bin(shape, "no depth near the dominant plane")
     counts, lo = _mm_histogram(hv)
     smooth = np.convolve(counts, np.ones(5), "same")
-    min_area = max(32, small.size // 1000)
-    missing = (~ok).view(np.uint8)
+    min_area = max(32, grid.small.size // 1000)
     padded = np.concatenate([[-1.0], smooth, [-1.0]])
     peaks = np.flatnonzero((smooth >= min_area / 2) & (smooth >= padded[:-2])
                            & (smooth > padded[2:]))  # local maxima of the histogram
-    region, outside = None, np.zeros(small.shape, bool)
+    region, outside = None, np.zeros(grid.small.shape, bool)
     for i in peaks:  # farthest (lowest) first
         level = (lo + i) / 1000.0
         flat = cv2.inRange(height, level - tol, level + tol)  # NaN (missing) is never in range
         flat = cv2.morphologyEx(flat, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
-        region, around = _floor_regions(flat, min_area, missing)
+        region, around = _floor_regions(flat, min_area, grid.missing)
         if region is None:  # holes may join the floor to its surroundings: without them
             region, around = _floor_regions(flat, min_area)
         outside |= around
         if region is not None:
             break
     if region is None:
-        raise _no_bin(d.shape, "no flat region enclosed by walls at any height of the dominant "
-                               "plane")
-    # the plane again, at full resolution on the floor's own pixels
+        raise _no_bin(shape, "no flat region enclosed by walls at any height of the dominant "
+                             "plane")
+    return region, level, outside
+
+
+def _floor_plane(d: np.ndarray, valid: np.ndarray, grid: _Grid, region: np.ndarray,
+                 plane: Plane, level: float, tol: float) -> tuple[Plane, float]:
+    """The plane again, at full resolution on the floor's own pixels -> (it, 0), or (`plane`,
+    `level`) if that fit fails."""
+    h, w = d.shape
+    step = grid.step
     rows, cols = np.nonzero(region)
     x0, y0 = max(0, (cols.min() - 1) * step), max(0, (rows.min() - 1) * step)
     x1, y1 = min(w, (cols.max() + 2) * step), min(h, (rows.max() + 2) * step)
-    near = cv2.resize(region.view(np.uint8), (small.shape[1] * step, small.shape[0] * step),
-                      interpolation=cv2.INTER_NEAREST)[y0:y1, x0:x1]
-    if step > 1:
-        near = cv2.dilate(near, np.ones((step + 1, step + 1), np.uint8))
+    near = grid.upsampled(region, y0, y1, x0, x1)
     crop, cok = d[y0:y1, x0:x1], valid[y0:y1, x0:x1]
     fu, fv, fz = _grid_points(crop, cok & near.view(bool)
                               & region_level(crop, plane, x0, y0, level, tol), x0, y0)
     refit = _fit_plane(fu, fv, fz, tol)
     if refit is not None:
-        plane, level = refit, 0.0
-    a, b, c = plane
-    height = plane_depth((a * step, b * step, c), (0, 0, small.shape[1], small.shape[0])) \
-        - small - np.float32(level)
-    height[~ok] = np.nan
-    inside, top = _interior(height, region, missing, outside)
+        return refit, 0.0
+    return plane, level
+
+
+def _outline(d: np.ndarray, valid: np.ndarray, grid: _Grid, region: np.ndarray,
+             outside: np.ndarray, plane: Plane, level: float, tol: float) -> np.ndarray:
+    """`find_bin` step 3: the bin's opening as the camera sees it, a convex polygon in
+    full-resolution pixels."""
+    h, w = d.shape
+    step = grid.step
+    height = grid.heights(plane, level)
+    inside, top = _interior(height, region, grid.missing, outside)
     pad = (step - 1) / 2.0  # a grid pixel stands for step x step full-resolution ones
     if inside is None:  # no walls around the floor: its own outline
         hull = cv2.convexHull(np.stack(np.nonzero(region)[::-1], 1).astype(np.int32))[:, 0]
-        hull = hull * step + pad  # full-resolution pixels
-    else:  # the inside's outline, each side moved in onto the floor (the walls' inner faces)
-        outline = cv2.convexHull(np.stack(np.nonzero(inside)[::-1], 1).astype(np.int32))
-        # the rim's four sides, without the bumps of objects that lean over it
-        outline = cv2.approxPolyDP(outline, 0.03 * cv2.arcLength(outline, True),
-                                   True)[:, 0].astype(float)
-        outline = _refit_sides(outline, inside)
-        faces = _faces(outline, inside, height, top)
-        # the floor seen inside, at full resolution, places the sides to the pixel
-        full_in = cv2.resize(inside.view(np.uint8), (small.shape[1] * step,
-                                                     small.shape[0] * step),
-                             interpolation=cv2.INTER_NEAREST)[:h, :w]
-        if step > 1:
-            full_in = cv2.dilate(full_in, np.ones((step + 1, step + 1), np.uint8))
-        rows, cols = np.nonzero(full_in)
-        x0, y0, x1, y1 = cols.min(), rows.min(), cols.max() + 1, rows.max() + 1
-        crop, cok = d[y0:y1, x0:x1], valid[y0:y1, x0:x1]
-        on_floor = region_level(crop, plane, x0, y0, level, tol) & cok & full_in[y0:y1, x0:x1] \
-            .view(bool)
-        on_floor = cv2.morphologyEx(on_floor.view(np.uint8), cv2.MORPH_OPEN,
-                                    np.ones((3, 3), np.uint8)).view(bool)
-        floor_pts = np.stack(np.nonzero(on_floor)[::-1], 1).astype(float) + (x0, y0)
-        outline = outline * step + pad
-        faces = [None if f is None else f * step for f in faces]
-        hull = _tighten(outline, floor_pts, faces) if len(floor_pts) else outline
+        return hull * step + pad  # full-resolution pixels
+    # the inside's outline, each side moved in onto the floor (the walls' inner faces)
+    outline = cv2.convexHull(np.stack(np.nonzero(inside)[::-1], 1).astype(np.int32))
+    # the rim's four sides, without the bumps of objects that lean over it
+    outline = cv2.approxPolyDP(outline, 0.03 * cv2.arcLength(outline, True),
+                               True)[:, 0].astype(float)
+    outline = _refit_sides(outline, inside)
+    faces = _faces(outline, inside, height, top)
+    # the floor seen inside, at full resolution, places the sides to the pixel
+    full_in = grid.upsampled(inside, 0, h, 0, w)
+    rows, cols = np.nonzero(full_in)
+    x0, y0, x1, y1 = cols.min(), rows.min(), cols.max() + 1, rows.max() + 1
+    crop, cok = d[y0:y1, x0:x1], valid[y0:y1, x0:x1]
+    on_floor = region_level(crop, plane, x0, y0, level, tol) & cok & full_in[y0:y1, x0:x1] \
+        .view(bool)
+    on_floor = cv2.morphologyEx(on_floor.view(np.uint8), cv2.MORPH_OPEN,
+                                np.ones((3, 3), np.uint8)).view(bool)
+    floor_pts = np.stack(np.nonzero(on_floor)[::-1], 1).astype(float) + (x0, y0)
+    outline = outline * step + pad
+    faces = [None if f is None else f * step for f in faces]
+    return _tighten(outline, floor_pts, faces) if len(floor_pts) else outline
+
+
+def _find_bin(d: np.ndarray, valid: np.ndarray, tolerance: float | None) -> BinRegion:
+    """`find_bin` on a sanitised frame (`_sanitize`): its steps 1 to 3, then the box."""
+    h, w = d.shape
+    plane, tol = _dominant_plane(d, valid, tolerance)
+    grid = _Grid.of(d, valid)
+    region, level, outside = _floor(grid, grid.heights(plane), tol, d.shape)
+    plane, level = _floor_plane(d, valid, grid, region, plane, level, tol)
+    hull = _outline(d, valid, grid, region, outside, plane, level, tol)
     # the box: the pixels whose centres lie inside the outline (give or take the grid)
+    pad = (grid.step - 1) / 2.0
     lo, hi = hull.min(0) - pad - 1e-6, hull.max(0) + pad + 1e-6
     hx0, hy0 = max(0, math.ceil(lo[0])), max(0, math.ceil(lo[1]))
     hx1, hy1 = min(w, math.floor(hi[0]) + 1), min(h, math.floor(hi[1]) + 1)
