@@ -1,0 +1,35 @@
+"""A loop's label-free verdict (`evaluation.verdict`): every shipped recording-made model
+passes it, and a card with the figures of a model that explains nothing fails it by name."""
+from __future__ import annotations
+
+import copy
+import json
+from pathlib import Path
+
+import pytest
+
+from inseggan_ros.evaluation import verdict
+
+MODELS = Path(__file__).resolve().parents[1] / "models"
+TILTED = sorted(p.parent.name for p in MODELS.glob("*_tilted/card.json"))
+
+
+@pytest.mark.parametrize("name", TILTED)
+def test_the_shipped_recording_made_models_pass(name):
+    card = json.loads((MODELS / name / "card.json").read_text())
+    assert verdict.verdict(card) == {"ok": True, "problems": []}
+
+
+def test_a_model_that_explains_nothing_fails_with_its_figures():
+    card = json.loads((MODELS / TILTED[0] / "card.json").read_text())
+    bad = copy.deepcopy(card)
+    bad["measures"]["coverage"] = 0.055
+    bad["centre_votes"]["best_val_miou"] = 0.268
+    v = verdict.verdict(bad)
+    assert not v["ok"]
+    assert len(v["problems"]) == 2
+    assert "coverage 0.055" in v["problems"][0] and "centre votes mIoU 0.268" in v["problems"][1]
+
+
+def test_a_card_without_figures_has_nothing_to_judge():
+    assert verdict.verdict({}) == {"ok": True, "problems": []}
