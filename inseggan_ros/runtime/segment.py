@@ -36,7 +36,7 @@ from inseggan_ros.runtime.refine import refine, refine_poses, start_poses
 from inseggan_ros.core.settings import InferenceConfig
 from inseggan_ros.runtime.smoothing import smooth_full, smooth_labels
 from inseggan_ros.runtime.superpixels import (
-    drop_walls, frame_segments, split_labels, vote_labels)
+    drop_small, drop_walls, frame_segments, split_labels, vote_labels)
 from inseggan_ros.runtime.model import build_models
 
 TAU_GRID = tuple(np.round(np.linspace(-0.95, 0.5, 30), 3))
@@ -347,7 +347,8 @@ class Segmenter:
         """`model_labels`' output -> a new dict with its labels voted within the depth
         superpixels and split (`settings.superpixel_scale`, `split_scale`; with centre votes a
         missed part is split off only where their heatmap puts a centre, `out["founding"]`),
-        a wall's top unlabelled (`superpixels.drop_walls`), and each instance's score; `out`
+        a wall's top unlabelled and instances too small to be a part in view merged
+        (`superpixels.drop_walls`, `drop_small`), and each instance's score; `out`
         itself is left as it is, so that one frame's model labels can be voted at several
         scales (`vote_scale.choose`)."""
         tau = self.tau if tau is None else float(tau)
@@ -358,7 +359,7 @@ class Segmenter:
             segments = segments.result()
         labels = vote_labels(out["labels"], x, n, cfg.vote_scale, segments)
         labels, cut = split_labels(labels, x, n, cfg.split_scale, segments, out.get("founding"))
-        labels = drop_walls(labels)
+        labels = drop_small(drop_walls(labels))
         # a piece cut off another instance has no render to measure its visible share by: 0
         scores = instance_scores(out["renders"], labels, tau).masked_fill(cut, 0.0)
         return {**out, "labels": labels, "scores": scores}

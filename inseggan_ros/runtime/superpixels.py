@@ -17,7 +17,9 @@ neighbour across a height edge; the coarse graph segmentation cuts it there and 
 piece gets an id of its own (chosen the same way, 2026-11-26, night).
 
 Last, `drop_walls` takes the labels off a bin wall's top that a tilted camera sees inside the
-bin region (`WALL_BAND`): foreground that is no part, and in an empty bin the only foreground.
+bin region (`WALL_BAND`): foreground that is no part, and in an empty bin the only foreground;
+and `drop_small` gives the pixels of an instance too small to be a part in view to its
+neighbours.
 
 Both segmentations depend on the input alone, not on the model's labels, so `frame_segments`
 can compute them beforehand (`Segmenter(superpixel_thread=True)` does, in a second thread
@@ -43,6 +45,9 @@ MIN_SIZE = 20  # pixels: smaller superpixels are merged into a neighbour
 WALL_BAND = 6
 WALL_SHARE = 0.8
 WALL_THICKNESS = 3.0
+# The fewest pixels an instance may label (`drop_small`): a part showing fewer does not count as
+# in view (`evaluation.selfcheck.MIN_VISIBLE_PIXELS`, the cards' visible-instance count).
+MIN_INSTANCE = 8
 
 
 def depth_superpixels(heights: np.ndarray, fg: np.ndarray, scale: float = 200,
@@ -216,8 +221,34 @@ def wall_frame(lab: np.ndarray) -> np.ndarray:
     return np.where(np.isin(lab, walls), 0, lab).astype(lab.dtype) if walls else lab
 
 
+def small_frame(lab: np.ndarray, min_pixels: int = MIN_INSTANCE) -> np.ndarray:
+    """(H, W) labels -> the same without instances of fewer than `min_pixels` pixels: their
+    pixels take the nearest remaining label where they touch one (8-connected through
+    labelled pixels: a rim or a corner cut off a part), else the background."""
+    from scipy.ndimage import label as connected
+
+    sizes = np.bincount(lab.ravel(), minlength=256)
+    small = np.flatnonzero((sizes > 0) & (sizes < min_pixels))
+    small = small[small > 0]
+    if not len(small):
+        return lab
+    out = np.where(np.isin(lab, small), 0, lab).astype(lab.dtype)
+    if out.any():
+        regions, _ = connected(lab > 0, structure=np.ones((3, 3)))
+        kept = np.isin(regions, np.unique(regions[out > 0])) & (lab > 0)
+        out = np.where(kept, fill_labels_nearest(out, kept), 0).astype(lab.dtype)
+    return out
+
+
 def drop_walls(labels: torch.Tensor) -> torch.Tensor:
     """(B, H, W) labels -> `wall_frame` of each frame."""
     lab = labels.cpu().numpy()
     out = np.stack([wall_frame(f) for f in lab]) if len(lab) else lab
+    return torch.from_numpy(out).to(labels.device)
+
+
+def drop_small(labels: torch.Tensor, min_pixels: int = MIN_INSTANCE) -> torch.Tensor:
+    """(B, H, W) labels -> `small_frame` of each frame."""
+    lab = labels.cpu().numpy()
+    out = np.stack([small_frame(f, min_pixels) for f in lab]) if len(lab) else lab
     return torch.from_numpy(out).to(labels.device)
