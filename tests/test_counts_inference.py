@@ -16,10 +16,7 @@ from inseggan_ros.runtime.centres import MIN_PIXELS
 from inseggan_ros.runtime.segment import Segmenter
 from inseggan_ros.runtime.superpixels import (
     MIN_INSTANCE, WALL_BAND, drop_small, drop_walls, small_frame, split_frame, wall_frame)
-from inseggan_ros.sim.camera import CameraConfig
-from inseggan_ros.sim.noise import NoiseConfig, get_noise
-from inseggan_ros.sim.scene import BinSimulator, SceneConfig
-from tools.bench_counts import frame_seed, visible_parts
+from tools.bench_counts import frame_seed, scene_source, scenes, visible_parts
 
 SEED = 31  # the bins below: seeds never used by the cards, the loop or the benchmark
 
@@ -35,6 +32,7 @@ def test_a_peak_needs_votes_and_no_peak_means_no_instance():
     lab[0, 50:54, 50:60] = 2  # and one of 40
     pred = _perfect(lab, 5)
     fg = lab > 0
+
     def count(labels):
         return len(labels.unique()) - 1
 
@@ -117,18 +115,6 @@ def test_an_instance_too_small_to_be_in_view_joins_its_neighbour_or_the_backgrou
                                torch.from_numpy(np.stack([out, alone * 0])))
 
 
-def _model_scene(name: str, parts: int) -> SceneConfig:
-    """The part, camera and noise of a shipped model's bins, as `tools.bench_counts`."""
-    card = json.loads((REPO / "models" / name / "card.json").read_text())
-    if "camera" in card:
-        cam, noise, obj = card["camera"], NoiseConfig(**card["noise"]), card["object"]
-    else:
-        cam = card["training_data"]["camera"]
-        noise, obj = get_noise("realsense"), card["shape"]["object"]
-    cam = CameraConfig(**{**cam, "bin_offset": tuple(cam["bin_offset"])})
-    return SceneConfig(object=obj, instances=parts, camera=cam, noise=noise)
-
-
 @pytest.fixture(scope="module")
 def one_thread():
     threads = torch.get_num_threads()
@@ -137,17 +123,18 @@ def one_thread():
     torch.set_num_threads(threads)
 
 
-@pytest.mark.parametrize("name", ["cylinder", "wooden_block", "cylinder_tilted"])
+@pytest.mark.parametrize("name", ["cylinder", "wooden_block", "hex_nut_tilted"])
 def test_bins_of_no_part_and_one_part_give_no_and_one_instance(name, one_thread):
+    """The model's own part, camera and noise (`tools.bench_counts.scene_source`)."""
     seg = Segmenter.from_checkpoint(REPO / "models" / name / "model.pt", device="cpu")
+    source = scene_source(REPO / "models" / name)
     for parts in (0, 1):
-        with BinSimulator(_model_scene(name, parts)) as sim:
-            for i in range(4):
-                scene = sim.render(frame_seed(SEED, parts, i))
-                out = seg(scene.depth, reconstruction=False)
-                got = len(np.unique(out.labels)) - 1
-                assert visible_parts(scene.labels, out.roi) == parts
-                assert got == parts, (name, parts, i, got)
+        seeds = [frame_seed(SEED, parts, i) for i in range(4)]
+        for seed, depth, labels in scenes(source, parts, seeds, None):
+            out = seg(depth, reconstruction=False)
+            got = len(np.unique(out.labels)) - 1
+            assert visible_parts(labels, out.roi) == parts
+            assert got == parts, (name, parts, seed, got)
 
 
 QUALITY = read_params_file(REPO / "config" / "quality.yaml")
@@ -159,8 +146,9 @@ def test_an_empty_bin_gives_no_instance_on_every_path(name, one_thread):
     and off. The cylinder's bin region is fixed, so an empty bin has no foreground; the tilted
     camera's region is found in the frame and holds the top of a wall."""
     seg = Segmenter.from_checkpoint(REPO / "models" / name / "model.pt", device="cpu")
-    with BinSimulator(_model_scene(name, 0)) as sim:
-        depth = sim.render(frame_seed(SEED, 0, 9)).depth
+    [(_, depth, labels)] = scenes(scene_source(REPO / "models" / name), 0,
+                                  [frame_seed(SEED, 0, 9)], None)
+    assert not labels.any()
     paths = {"realtime": seg.inference, "quality": apply(seg.inference, QUALITY)}
     paths.update({f"{k}, centre votes off": replace(v, centre_votes="off")
                   for k, v in list(paths.items())})
@@ -171,3 +159,23 @@ def test_an_empty_bin_gives_no_instance_on_every_path(name, one_thread):
         assert not out.masks.any() and (out.scores == 0).all(), (name, path)
     if name == "cylinder_tilted":  # the wall's top is foreground: the rule, not an empty input
         assert (seg(depth).x64 > -1).sum() > 20
+
+
+def test_the_counts_benchmark_prints_its_table_and_writes_json(tmp, capsys, one_thread):
+    from tools.bench_counts import main
+
+    out = tmp / "counts.json"
+    assert main(["--models", "cylinder", "--counts", "0", "N", "--frames", "1", "--seed",
+                 str(SEED), "--json", str(out)]) == 0
+    table = capsys.readouterr().out
+    assert "count right" in table and table.count("cylinder ") == 2
+    rows = json.loads(out.read_text())["rows"]
+    assert [(r["parts"], r["frames"]) for r in rows] == [(0, 1), (5, 1)]
+    assert rows[0]["miou"] is None and rows[0]["counts"] == {"0": 1}
+    assert 0 < rows[1]["miou"] <= 1
+    for bad in (["--counts", "two"], ["--models", "teapot"], ["--frames", "0"]):
+        with pytest.raises(SystemExit) as e:
+            main(bad)
+        assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert "valid: an integer, N or N-k" in err and "valid: bolt" in err

@@ -194,8 +194,8 @@ def _commit() -> str | None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m tools.bench_counts",
                                  description=__doc__.split("\n")[0])
-    ap.add_argument("--models", nargs="+", default=["cylinder", "hex_nut", "wooden_block",
-                                                     "cylinder_tilted"],
+    ap.add_argument("--models", nargs="+",
+                    default=["cylinder", "hex_nut", "wooden_block", "cylinder_tilted"],
                     help="shipped models (folders of models/)")
     ap.add_argument("--counts", nargs="+", default=["0", "1", "N-1", "N"],
                     help="parts in the bin; N is the model's n (default: 0 1 N-1 N)")
