@@ -56,7 +56,7 @@ def test_existing_output_and_bad_arguments(tmp):
     assert json.loads((out / "meta.json").read_text()) == before
     for args, message in [(["--count", "0"], "count must be >= 1"),
                           (["--split", "0.8,0.2"], "need three fractions"),
-                          (["--instances", "40"], "instances must be in 1..20"),
+                          (["--instances", "40"], "instances must be in 0..20"),
                           (["--workers", "0"], "workers must be >= 1")]:
         p = run_cli("simulate", "--quiet", *args, "--out", tmp / "bad")
         assert p.returncode == 2 and message in p.stderr, p.stderr

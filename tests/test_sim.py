@@ -148,8 +148,14 @@ def test_simulated_holes_lie_on_the_far_side_of_depth_edges():
 
 
 def test_bad_configs_are_rejected_clearly():
-    with pytest.raises(ValueError, match="instances must be in 1..20"):
-        SceneConfig(instances=0)
+    with pytest.raises(ValueError, match=r"in 0..20 \(0 = an empty bin\), got 21"):
+        SceneConfig(instances=21)
+    with pytest.raises(ValueError, match="instances must be in 0..20"):
+        SceneConfig(instances=-1)
+    with pytest.raises(ValueError, match=r"min_instances must be in 0..instances \(3\)"):
+        SceneConfig(instances=3, min_instances=4)
+    with pytest.raises(ValueError, match="min_instances must be in 0..instances"):
+        SceneConfig(instances=3, min_instances=-1)
     with pytest.raises(ValueError, match="unknown camera preset 'kinect'; valid: default"):
         get_camera("kinect")
 

@@ -82,14 +82,20 @@ def _grid(H: int, W: int) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 @torch.no_grad()
-def decode(pred: torch.Tensor, fg, n: int) -> torch.Tensor:
+def decode(pred: torch.Tensor, fg, n: int, min_votes: float | torch.Tensor = 0.0) -> torch.Tensor:
     """(B, 3, H, W) net output and (B, H, W) foreground -> (B, H, W) uint8 labels: the
-    heatmap's peaks (at most n, each the highest within PEAK_RADIUS, above PEAK_THRESHOLD; the
-    highest always counts), labelled 1.. in order of height, and every foreground pixel given
-    the peak nearest where its offset points. A peak may lie off the foreground: the centre of
-    a part with a hole (a nut lying flat) is in the hole (peaks on the foreground only cost a
-    net taught on the nut's frames 0.918 -> 0.648 on its validation split; the cylinder's and
-    the bolt's labels are the same either way: docs/experiments.md, 2026-11-29)."""
+    heatmap's peaks (at most n, each the highest within PEAK_RADIUS, above PEAK_THRESHOLD),
+    labelled 1.. in order of height, and every foreground pixel given the peak nearest where
+    its offset points. A peak may lie off the foreground: the centre of a part with a hole (a
+    nut lying flat) is in the hole (peaks on the foreground only cost a net taught on the nut's
+    frames 0.918 -> 0.648 on its validation split; the cylinder's and the bolt's labels are the
+    same either way: docs/experiments.md, 2026-11-29).
+
+    `min_votes` (pixels; a number or one per frame): a peak is an instance only where at least
+    that many foreground pixels vote for it; the peak with the fewest votes below it is dropped
+    and its pixels vote again, until every peak left has enough, so that a bin of fewer parts
+    than n, or none, gets no instance from a weak peak or from foreground that is no part (a
+    wall's top). 0: the highest peak always counts, as the net was taught (n parts a bin)."""
     pred = pred.float()
     fg = torch.as_tensor(fg, dtype=torch.bool, device=pred.device)
     B, _, H, W = pred.shape
@@ -99,22 +105,49 @@ def decode(pred: torch.Tensor, fg, n: int) -> torch.Tensor:
     score = torch.where(heat == local, heat, torch.zeros_like(heat)).flatten(1)
     top = score.topk(min(n, H * W), dim=1)
     keep = top.values > PEAK_THRESHOLD
-    keep[:, 0] = True
     ys, xs = _grid(H, W)
     cy, cx = ys.flatten()[top.indices], xs.flatten()[top.indices]  # (B, k)
     vy = ys + pred[:, 1] * OFFSET_UNIT  # where each pixel's vote lands
     vx = xs + pred[:, 2] * OFFSET_UNIT
     d = (vy[:, None] - cy[..., None, None]) ** 2 + (vx[:, None] - cx[..., None, None]) ** 2
+    min_votes = torch.as_tensor(min_votes, dtype=torch.float32, device=pred.device)
+    if (min_votes <= 0).all():
+        keep[:, 0] = True
+    else:
+        keep = _enough_votes(d, keep, fg, min_votes.expand(B))
     d = torch.where(keep[..., None, None], d, torch.full_like(d, float("inf")))
     labels = (d.min(1).indices + 1).to(torch.uint8)  # argmin's, at a twentieth of its time
-    labels[~fg] = 0
+    labels[~fg | ~keep.any(1)[:, None, None]] = 0
     return labels
 
 
+def _enough_votes(d: torch.Tensor, keep: torch.Tensor, fg: torch.Tensor,
+                  min_votes: torch.Tensor) -> torch.Tensor:
+    """`keep` (B, k) less the peaks that fewer than `min_votes` (B,) foreground pixels vote
+    for, dropped one at a time (the fewest votes first, the others voting again), given each
+    pixel's squared distance `d` (B, k, H, W) from where its vote lands to each peak."""
+    keep = keep.clone()
+    inf = torch.full_like(d, float("inf"))
+    for _ in range(keep.shape[1]):
+        nearest = torch.where(keep[..., None, None], d, inf).min(1).indices  # (B, H, W)
+        votes = F.one_hot(nearest, keep.shape[1]).mul_(fg[..., None]).flatten(1, 2).sum(1)
+        weak = keep & (votes < min_votes[:, None])
+        if not weak.any():
+            break
+        fewest = torch.where(weak, votes, torch.full_like(votes, votes.max() + 1)).argmin(1)
+        keep[torch.arange(len(keep))[weak.any(1)], fewest[weak.any(1)]] = False
+    return keep
+
+
 @torch.no_grad()
-def centre_labels(net: CentreNet, x, fg, n: int) -> torch.Tensor:
-    """(B, 1, H, W) model inputs and (B, H, W) foreground -> (B, H, W) uint8 labels."""
-    return decode(net(net_input(x, fg)), fg, n)
+def centre_labels(net: CentreNet, x, fg, n: int, min_votes: float = 0.0,
+                  founding: bool = False):
+    """(B, 1, H, W) model inputs and (B, H, W) foreground -> (B, H, W) uint8 labels
+    (`decode`, its `min_votes`); with `founding`, also (B, H, W) bool: where the heatmap is
+    above PEAK_THRESHOLD, where a part's centre may be (`superpixels.split_frame`'s)."""
+    pred = net(net_input(x, fg))
+    labels = decode(pred, fg, n, min_votes)
+    return (labels, torch.sigmoid(pred[:, 0].float()) > PEAK_THRESHOLD) if founding else labels
 
 
 def match_to_renders(labels: torch.Tensor, zbuffer: torch.Tensor, n: int) -> torch.Tensor:

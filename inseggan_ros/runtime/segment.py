@@ -24,7 +24,8 @@ import torch
 import torch.nn.functional as F
 
 from inseggan_ros.core import checkpoint
-from inseggan_ros.runtime.centres import centre_labels, match_to_renders, net_from_state
+from inseggan_ros.runtime.centres import (
+    MIN_PIXELS, centre_labels, match_to_renders, net_from_state)
 from inseggan_ros.runtime.label_head import head_labels, head_from_state
 from inseggan_ros.core.metrics import mean_miou, miou_batch
 from inseggan_ros.runtime.model import TemplateGenerator
@@ -34,7 +35,8 @@ from inseggan_ros.runtime.preprocess import (
 from inseggan_ros.runtime.refine import refine, refine_poses, start_poses
 from inseggan_ros.core.settings import InferenceConfig
 from inseggan_ros.runtime.smoothing import smooth_full, smooth_labels
-from inseggan_ros.runtime.superpixels import frame_segments, split_labels, vote_labels
+from inseggan_ros.runtime.superpixels import (
+    drop_small, drop_walls, frame_segments, split_labels, vote_labels)
 from inseggan_ros.runtime.model import build_models
 
 TAU_GRID = tuple(np.round(np.linspace(-0.95, 0.5, 30), 3))
@@ -237,15 +239,20 @@ class Segmenter:
         float32, `precision.CastCentreNet`)."""
         return self._in_precision("centre_net", CastCentreNet, precision)
 
-    def centre_votes(self, x, fg, n: int, precision: str = "float32") -> torch.Tensor:
+    def centre_votes(self, x, fg, n: int, precision: str = "float32",
+                     founding: bool = False) -> torch.Tensor:
         """(B, 1, 64, 64) inputs and (B, 64, 64) foreground -> the centre votes' labels
-        (B, 64, 64), before they are matched to the renders."""
+        (B, 64, 64), before they are matched to the renders; with `founding`, also where a
+        part's centre may be (`centres.centre_labels`). A peak is an instance only with at
+        least MIN_PIXELS foreground pixels voting for it (`centres.decode`): the net was
+        taught no centre for a part showing fewer, and a few stray pixels of an empty bin's
+        foreground make no instance."""
         if self.centre_net is None:
             raise ValueError("centre_votes on: this model has no centre-vote network; "
                              "valid: off")
         x = torch.as_tensor(x, dtype=torch.float32, device=self.device)
         fg = torch.as_tensor(fg, dtype=torch.bool, device=self.device)
-        return centre_labels(self.centre_net_in(precision), x, fg, n)
+        return centre_labels(self.centre_net_in(precision), x, fg, n, MIN_PIXELS, founding)
 
     @staticmethod
     def from_checkpoint(path, device: str = "auto", tau: float | None = None,
@@ -297,7 +304,8 @@ class Segmenter:
         """(B, 1, 64, 64) prepared inputs -> labels (B, 64, 64) uint8, renders, scores, recon.
         `tau` and `settings` override the model's. `segments`: each frame's
         `superpixels.frame_segments` made beforehand (a list, or a Future of one); `centres`:
-        the centre votes' labels made beforehand (`centre_votes`, or a Future of them)."""
+        the centre votes made beforehand (`centre_votes`, its labels or with `founding` its
+        pair, or a Future of them)."""
         cfg = self.inference if settings is None else settings
         x = torch.as_tensor(x, dtype=torch.float32, device=self.device)
         out = self.model_labels(x, fg, tau, cfg, centres)
@@ -326,7 +334,9 @@ class Segmenter:
             if isinstance(centres, Future):
                 centres = centres.result()
             if centres is None:
-                centres = self.centre_votes(x, fg_t, n, cfg.centre_precision)
+                centres = self.centre_votes(x, fg_t, n, cfg.centre_precision, founding=True)
+            if isinstance(centres, tuple):  # where a missed part may be split off: `founding`
+                centres, out["founding"] = centres
             labels = match_to_renders(centres, labels, n)
         out["labels"] = smooth_labels(labels, x, out["renders"].shape[1], cfg.smooth)
         return out
@@ -335,9 +345,12 @@ class Segmenter:
                        settings: InferenceConfig | None = None, tau: float | None = None,
                        segments=None) -> dict:
         """`model_labels`' output -> a new dict with its labels voted within the depth
-        superpixels and split (`settings.superpixel_scale`, `split_scale`), and each
-        instance's score; `out` itself is left as it is, so that one frame's model labels can
-        be voted at several scales (`vote_scale.choose`)."""
+        superpixels and split (`settings.superpixel_scale`, `split_scale`; with centre votes a
+        missed part is split off only where their heatmap puts a centre, `out["founding"]`),
+        a wall's top unlabelled and instances too small to be a part in view merged
+        (`superpixels.drop_walls`, `drop_small`), and each instance's score; `out`
+        itself is left as it is, so that one frame's model labels can be voted at several
+        scales (`vote_scale.choose`)."""
         tau = self.tau if tau is None else float(tau)
         cfg = self.inference if settings is None else settings
         x = torch.as_tensor(x, dtype=torch.float32, device=self.device)
@@ -345,7 +358,8 @@ class Segmenter:
         if isinstance(segments, Future):
             segments = segments.result()
         labels = vote_labels(out["labels"], x, n, cfg.vote_scale, segments)
-        labels, cut = split_labels(labels, x, n, cfg.split_scale, segments)
+        labels, cut = split_labels(labels, x, n, cfg.split_scale, segments, out.get("founding"))
+        labels = drop_small(drop_walls(labels))
         # a piece cut off another instance has no render to measure its visible share by: 0
         scores = instance_scores(out["renders"], labels, tau).masked_fill(cut, 0.0)
         return {**out, "labels": labels, "scores": scores}
@@ -369,7 +383,8 @@ class Segmenter:
         segments = centres = None
         if self.superpixel_thread and cfg.centre_votes == "on":  # first: needed first
             centres = self._in_second_thread(self.centre_votes, x, fg,
-                                             self.model_cfg.n_instances, cfg.centre_precision)
+                                             self.model_cfg.n_instances, cfg.centre_precision,
+                                             True)
         if self.superpixel_thread and (cfg.vote_scale > 0 or cfg.split_scale > 0):
             segments = self._in_second_thread(lambda: [frame_segments(
                 prep.x, prep.fg, (cfg.vote_scale, cfg.split_scale))])

@@ -3,8 +3,8 @@
 Layout of a data set directory:
     meta.json                  scene config, seed, splits, shard list, timing
     train/shard-00000.npz      depth (N, H, W) float32 metres, labels (N, H, W) uint8,
-    val/...                    seeds (N,) int64, poses (N, n, 7) float32
-    test/...
+    val/...                    seeds (N,) int64, instances (N,) int64 (parts in the scene),
+    test/...                   poses (N, n, 7) float32 (NaN past a scene's own count)
     bags/<split>/              rosbag2 (MCAP) of the same frames, when asked for
 Scene i of a split is simulated from a seed derived from (seed, split, i) alone, so the data set is
 the same whatever the number of worker processes. Everything is written into a hidden temporary
@@ -77,24 +77,32 @@ def _init_worker(scene_cfg: dict) -> None:
     _SIM = BinSimulator(SceneConfig.from_dict(scene_cfg))
 
 
-def _make_shard(task: tuple) -> tuple[str, str, int, int]:
-    """-> (split, file name, scenes, scenes that had to be piled again)."""
+def _make_shard(task: tuple) -> tuple[str, str, int, int, list[int]]:
+    """-> (split, file name, scenes, scenes that had to be piled again, each scene's count)."""
     split, name, seeds, out_dir = task
     scenes, repiled = [], 0
     for s in seeds:
         scenes.append(_SIM.render(s))
         repiled += int(_SIM.last_piles > 1)
-    save_shard(Path(out_dir) / split / name, scenes)
-    return split, name, len(scenes), repiled
+    save_shard(Path(out_dir) / split / name, scenes, _SIM.cfg.instances)
+    return split, name, len(scenes), repiled, [len(s.poses) for s in scenes]
 
 
-def save_shard(path: Path, scenes: list[Scene]) -> None:
+def save_shard(path: Path, scenes: list[Scene], instances: int | None = None) -> None:
+    """Write scenes as one npz shard. Scenes of mixed counts (`SceneConfig.min_instances`)
+    share one poses array of `instances` (default: the largest count) rows a scene, NaN past
+    each scene's own count, which the shard's `instances` array gives."""
     tmp = path.with_name(path.name + ".tmp")
+    counts = np.array([len(s.poses) for s in scenes], np.int64)
+    rows = int(counts.max()) if instances is None else int(instances)
+    poses = np.full((len(scenes), rows, 7), np.nan, np.float32)
+    for i, s in enumerate(scenes):
+        poses[i, :len(s.poses)] = s.poses
     with open(tmp, "wb") as f:
         np.savez_compressed(f, depth=np.stack([s.depth for s in scenes]),
                             labels=np.stack([s.labels for s in scenes]),
                             seeds=np.array([s.seed for s in scenes], np.int64),
-                            poses=np.stack([s.poses for s in scenes]))
+                            instances=counts, poses=poses)
     os.replace(tmp, path)
 
 
@@ -124,12 +132,15 @@ def generate(spec: DatasetSpec, out: Path, workers: int = 1, bags: bool = False,
         total = sum(len(t[2]) for t in tasks)
         t0 = time.perf_counter()
         shards = {s: [] for s in SPLITS}
+        parts = {s: {} for s in SPLITS}  # split -> {parts in a scene: scenes}
         repiled = 0
         with ProcessPoolExecutor(workers, initializer=_init_worker,
                                  initargs=(spec.scene.to_dict(),)) as pool, \
                 tqdm(total=total, unit="scene", desc="simulating", disable=not progress) as bar:
-            for split, name, n, again in pool.map(_make_shard, tasks):
+            for split, name, n, again, counts in pool.map(_make_shard, tasks):
                 shards[split].append({"file": f"{split}/{name}", "scenes": n})
+                for c in counts:
+                    parts[split][str(c)] = parts[split].get(str(c), 0) + 1
                 repiled += again
                 bar.update(n)
         sim_seconds = time.perf_counter() - t0
@@ -138,6 +149,8 @@ def generate(spec: DatasetSpec, out: Path, workers: int = 1, bags: bool = False,
                 "workers": workers, "simulation_seconds": round(sim_seconds, 2),
                 "scenes_per_second": round(total / sim_seconds, 2),
                 "repiled_scenes": repiled,  # a part bounced out of the first pile (sim.scene)
+                "instance_counts": {s: dict(sorted(parts[s].items(), key=lambda kv: int(kv[0])))
+                                    for s in SPLITS},
                 "bags": {}}
         if bags:
             for split in SPLITS:

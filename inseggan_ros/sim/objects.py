@@ -166,6 +166,49 @@ def _pin_connector() -> ObjectSpec:
                       (shaft.vertices, flange.vertices), Mesh.merge([shaft, flange]), mass=0.02)
 
 
+def _box_overlap(a, b) -> tuple[float, np.ndarray]:
+    """(volume, centre) of what two axis-aligned boxes share, each given as (size (3,),
+    centre (3,)), metres."""
+    lo = np.maximum(np.subtract(a[1], np.divide(a[0], 2)), np.subtract(b[1], np.divide(b[0], 2)))
+    hi = np.minimum(np.add(a[1], np.divide(a[0], 2)), np.add(b[1], np.divide(b[0], 2)))
+    return float(np.prod(np.clip(hi - lo, 0, None))), (lo + hi) / 2
+
+
+def _bars(name: str, description: str, bars, density: float) -> ObjectSpec:
+    """A part made of rectangular bars, each (size (3,), centre (3,)) in metres, axis-aligned
+    in the part's frame: one convex collision piece per bar, one rendered mesh, the origin
+    moved to the centre of mass. Neighbouring bars overlap by a little, so that the union is
+    one body (`evaluation.shape.components`) and not bars that merely touch; what two bars
+    share is counted once in the mass and its centre (no three bars may share a point)."""
+    sizes = np.array([b[0] for b in bars], float)
+    centres = np.array([b[1] for b in bars], float)
+    volume, moment = sizes.prod(1).sum(), (sizes.prod(1)[:, None] * centres).sum(0)
+    for i in range(len(bars)):
+        for j in range(i + 1, len(bars)):
+            v, c = _box_overlap(bars[i], bars[j])
+            volume, moment = volume - v, moment - v * c
+    com = moment / volume
+    meshes = [box(size).translated(c - com) for size, c in zip(sizes, centres)]
+    return ObjectSpec(name, description, tuple(m.vertices for m in meshes), Mesh.merge(meshes),
+                      mass=density * volume)
+
+
+def _t_piece() -> ObjectSpec:
+    # A flat T of two bars 8 mm thick: a 40 x 10 mm cross bar and a 10 x 31 mm stem that
+    # reaches 1 mm into it (40 x 40 mm overall), aluminium.
+    return _bars("t_piece", "flat aluminium T of two bars (40 x 40 mm, 10 mm wide, 8 mm thick)",
+                 [((0.040, 0.010, 0.008), (0.0, 0.015, 0.0)),
+                  ((0.010, 0.031, 0.008), (0.0, -0.0045, 0.0))], density=2700.0)
+
+
+def _l_bracket() -> ObjectSpec:
+    # A steel angle bracket of two 5 mm plates at a right angle: a 30 x 20 mm base and a 20 mm
+    # wide upright 26 mm tall overall, sharing the corner's 5 x 20 x 5 mm.
+    return _bars("l_bracket", "steel angle bracket (30 x 20 mm base, 26 mm upright, 5 mm plate)",
+                 [((0.030, 0.020, 0.005), (0.0, 0.0, 0.0)),
+                  ((0.005, 0.020, 0.026), (0.0125, 0.0, 0.0105))], density=7850.0)
+
+
 OBJECTS: dict[str, ObjectSpec] = {
     o.name: o for o in (
         _single("cylinder", "solid cylinder, 24 mm diameter x 40 mm",
@@ -178,6 +221,8 @@ OBJECTS: dict[str, ObjectSpec] = {
         _single("stopper", "tapered rubber stopper, 22/30 mm diameter x 25 mm",
                 frustum(0.011, 0.015, 0.025)),
         _pin_connector(),
+        _t_piece(),
+        _l_bracket(),
     )
 }
 

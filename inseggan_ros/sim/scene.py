@@ -26,6 +26,7 @@ DROPS = 5  # tries to drop each part into the bin before the pile is started aga
 # given up: a part that fits the bin still falls out now and then (more often the larger it is),
 # and one such scene must not stop a data set of thousands.
 PILES = 4
+COUNT_STREAM = 0x636F756E  # the seed stream that draws a scene's count (`SceneConfig.count`)
 
 
 class PileError(ValueError):
@@ -52,8 +53,16 @@ class BinConfig:
                          [-hx, hy, height]])
 
 
+MAX_INSTANCES = 20
+
+
 @dataclass(frozen=True)
 class SceneConfig:
+    """One kind of bin scene. `instances` parts are dropped into the bin (0: an empty bin, whose
+    labels are all 0); with `min_instances` set, each scene draws its own count, uniformly in
+    min_instances..instances from its seed, as a robot that empties the bin sees it (full,
+    then fewer parts, then none)."""
+
     object: str = "cylinder"
     instances: int = 5
     camera: CameraConfig = field(default_factory=CameraConfig)
@@ -63,16 +72,30 @@ class SceneConfig:
     time_step: float = 1.0 / 120.0
     settle_speed: float = 0.02  # m/s (and rad/s scaled by the object radius)
     max_settle_steps: int = 240
+    min_instances: int | None = None  # None: every scene holds `instances` parts
 
     def __post_init__(self):
         get_object(self.object)  # raises with the list of valid names
-        if not 1 <= self.instances <= 20:
-            raise ValueError(f"instances must be in 1..20, got {self.instances}")
+        if not 0 <= self.instances <= MAX_INSTANCES:
+            raise ValueError(f"instances must be in 0..{MAX_INSTANCES} (0 = an empty bin), got "
+                             f"{self.instances}")
+        if self.min_instances is not None and not 0 <= self.min_instances <= self.instances:
+            raise ValueError(f"min_instances must be in 0..instances ({self.instances}) or None "
+                             f"(every scene holds `instances` parts), got {self.min_instances}")
         if not 0 < self.drop_spread <= 1:
             raise ValueError(f"drop_spread must be in (0, 1], got {self.drop_spread}")
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+    def count(self, seed: int) -> int:
+        """How many parts the scene of `seed` holds: `instances`, or with `min_instances` a
+        count drawn from the seed alone (from a stream of its own, so that the piles' random
+        numbers are those of a scene of that many parts)."""
+        if self.min_instances is None:
+            return self.instances
+        rng = np.random.default_rng([COUNT_STREAM, int(seed)])
+        return int(rng.integers(self.min_instances, self.instances + 1))
 
     @staticmethod
     def from_dict(d: dict) -> "SceneConfig":
@@ -89,7 +112,7 @@ class SceneConfig:
 class Scene:
     depth: np.ndarray  # (H, W) float32 metres; 0 = no reading (noise model only)
     labels: np.ndarray  # (H, W) uint8, 0 = bin / background, 1..n = instance
-    poses: np.ndarray  # (n, 7) float32: x, y, z, qx, qy, qz, qw (world frame)
+    poses: np.ndarray  # (n, 7) float32: x, y, z, qx, qy, qz, qw (world frame); n may be 0
     seed: int
 
 
@@ -196,15 +219,15 @@ class BinSimulator:
         return abs(x) < hx and abs(y) < hy and z > -0.01  # on the floor or on the pile
 
     # ------------------------------------------------------------------ one scene
-    def _pile(self, rng: np.random.Generator) -> tuple[list[int], int | None]:
-        """Drop the parts one by one into an empty bin -> (their bodies, None), or (the bodies
-        so far, k) when part k fell out of the bin in each of its DROPS drops."""
+    def _pile(self, rng: np.random.Generator, count: int) -> tuple[list[int], int | None]:
+        """Drop `count` parts one by one into an empty bin -> (their bodies, None), or (the
+        bodies so far, k) when part k fell out of the bin in each of its DROPS drops."""
         p, c, cfg = self.p, self.client, self.cfg
         col, vis = self._reset_world()
         spread = np.asarray(cfg.bin.inner_size) * cfg.drop_spread / 2
         bodies: list[int] = []
         top = 0.0
-        for k in range(cfg.instances):
+        for k in range(count):
             for _attempt in range(DROPS):
                 q = rng.standard_normal(4)
                 q /= np.linalg.norm(q)
@@ -227,16 +250,17 @@ class BinSimulator:
     def render(self, seed: int) -> Scene:
         p, c, cfg = self.p, self.client, self.cfg
         t0 = time.perf_counter()
+        count = cfg.count(seed)
         for pile in range(PILES):  # the first pile from the seed itself: data sets unchanged
             rng = np.random.default_rng(seed if pile == 0 else [seed, pile])
-            bodies, fell = self._pile(rng)
+            bodies, fell = self._pile(rng, count)
             if fell is None:
                 break
         else:
             size = " x ".join(f"{1000 * v:.0f}" for v in self.spec.extent)
             inner = " x ".join(f"{1000 * v:.0f}" for v in cfg.bin.inner_size)
             raise PileError(
-                f"seed {seed}: part {fell + 1} of {cfg.instances} ({self.spec.name}, {size} mm) "
+                f"seed {seed}: part {fell + 1} of {count} ({self.spec.name}, {size} mm) "
                 f"fell out of the {inner} mm bin in {DROPS} drops, in each of {PILES} piles "
                 "started afresh; valid: a part that fits that many times in the bin (a learned "
                 "shape this large is not learned yet: train it longer), or fewer instances, or "
@@ -251,12 +275,12 @@ class BinSimulator:
         zbuf = np.asarray(zbuf, np.float32).reshape(cam.height, cam.width)
         seg = np.asarray(seg, np.int32).reshape(cam.height, cam.width)
         depth = cam.depth_from_zbuffer(zbuf)
-        lut = np.zeros(max(max(bodies), int(seg.max())) + 2, np.uint8)
-        lut[np.array(bodies) + 1] = np.arange(1, len(bodies) + 1)
+        lut = np.zeros(max(bodies + [int(seg.max())]) + 2, np.uint8)  # an empty bin: all 0
+        lut[np.array(bodies, np.int64) + 1] = np.arange(1, len(bodies) + 1)
         labels = lut[np.clip(seg, -1, None) + 1]
         if cfg.noise.enabled:
             depth = apply_noise(depth, cfg.noise, rng, fx=cam.fx)
         poses = np.array([sum(map(list, p.getBasePositionAndOrientation(b, physicsClientId=c)), [])
-                          for b in bodies], np.float32)
+                          for b in bodies], np.float32).reshape(len(bodies), 7)
         self.last_timing = {"physics": t1 - t0, "render": time.perf_counter() - t1}
         return Scene(depth=depth, labels=labels, poses=poses, seed=int(seed))
