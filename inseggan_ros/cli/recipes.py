@@ -107,6 +107,39 @@ def merge(args: argparse.Namespace, defaults: dict, recipe: dict, together=()) -
             for k, default in defaults.items()}
 
 
+def step_argv(parser: argparse.ArgumentParser, step: dict, where) -> list[str]:
+    """A recipe step's options (`command` and `commit` left out) as its command's arguments:
+    the positional ones in the command's order, then `--flag=value` each (a list
+    comma-separated, a repeatable flag repeated, `true` the flag alone, `false` its `--no-`
+    form where it has one, null left out). Unknown names are refused with the valid ones."""
+    from inseggan_ros.core.recipe import META
+
+    actions = options(parser)
+    step = {k: v for k, v in step.items() if k not in META}
+    unknown = sorted(set(step) - set(actions))
+    if unknown:
+        raise ValueError(f"recipe {where}: unknown option{'s' * (len(unknown) > 1)} "
+                         f"{', '.join(unknown)}; valid: {', '.join(actions)}")
+    positional, flags = [], []
+    for name, action in actions.items():
+        value = step.get(name)
+        if name not in step or value is None:
+            continue
+        if not action.option_strings:
+            positional += [_text(v) for v in value] if isinstance(value, list) else [_text(value)]
+        elif action.nargs == 0:
+            if not isinstance(value, bool):
+                raise ValueError(f"recipe {where}: {name} {value!r} invalid; valid: true or false")
+            off = [s for s in action.option_strings if s.startswith("--no-")]
+            flags += [action.option_strings[0]] if value is True else off
+        elif isinstance(action, argparse._AppendAction):
+            flags += [f"{action.option_strings[0]}={_text(v)}"
+                      for v in (value if isinstance(value, list) else [value])]
+        else:
+            flags.append(f"{action.option_strings[0]}={_text(value)}")
+    return positional + flags
+
+
 def shipped_recipe(name: str) -> Path:
     """A recipe path, or the name of a shipped one (config/recipes/<name>.yaml)."""
     from inseggan_ros.core.paths import NotFoundError, shipped_dir

@@ -86,7 +86,7 @@ def _same_view(file: Path, data) -> None:
     and scaled the same way (same camera and bin), else the simulated part and the template
     disagree in size."""
     from inseggan_ros.core import checkpoint
-    from inseggan_ros.data.datasets.datasets import sim_preprocess_config
+    from inseggan_ros.data.datasets import sim_preprocess_config
 
     trained = checkpoint.load(file).get("preprocess_config") or {}
     user = sim_preprocess_config(data).to_dict()
