@@ -67,7 +67,8 @@ def test_a_tiny_loop_explains_held_out_scenes_of_its_shape_better_than_its_start
     assert card["recipe"] == {k: v for k, v in recipe.items() if k not in ("command", "commit")}
     assert card["commit"] == recipe["commit"] != ""
     again = run_cli("loop", "--recipe", out / "recipe.yaml", "--print-recipe", check=True)
-    assert yaml.safe_load(again.stdout) == recipe
+    again = yaml.safe_load(again.stdout)  # resolved by the code now, whose commit is its own
+    assert {**again, "commit": recipe["commit"]} == recipe
     # the vote's scale chosen on the piles' validation split: every default scale scored, and
     # the one chosen is what the model ships and its card names
     vote = summary["vote_scale"]
