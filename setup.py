@@ -33,7 +33,7 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
-            "inseggan = inseggan_ros.cli.main:main",
+            "inseggan = inseggan_ros.cli:main",
             "bin_replay = inseggan_ros.ros.bin_replay:main",
             "segmenter = inseggan_ros.ros.segmenter:main",
         ],

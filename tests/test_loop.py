@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import yaml
 from conftest import REPO, run_cli
 
 from inseggan_ros.core import checkpoint
@@ -58,6 +59,16 @@ def test_a_tiny_loop_explains_held_out_scenes_of_its_shape_better_than_its_start
     card = json.loads((out / "model" / "card.json").read_text())
     assert card["label_free"] and card["labelled"]["frames"] == 20  # the user's test frames
     assert (out / "model" / "model.pt").is_file() and (out / "model" / "qualitative.png").is_file()
+    # the run's resolved configuration (every option), written beside it and stored on its
+    # card with the code's commit; given back with --recipe, it resolves to the same
+    recipe = yaml.safe_load((out / "recipe.yaml").read_text())
+    assert recipe["command"] == "loop" and recipe["model"] == str(MODEL)
+    assert (recipe["scenes"], recipe["val_scenes"], recipe["lr"]) == (96, 16, 3e-4)
+    assert card["recipe"] == {k: v for k, v in recipe.items() if k not in ("command", "commit")}
+    assert card["commit"] == recipe["commit"] != ""
+    again = run_cli("loop", "--recipe", out / "recipe.yaml", "--print-recipe", check=True)
+    again = yaml.safe_load(again.stdout)  # resolved by the code now, whose commit is its own
+    assert {**again, "commit": recipe["commit"]} == recipe
     # the vote's scale chosen on the piles' validation split: every default scale scored, and
     # the one chosen is what the model ships and its card names
     vote = summary["vote_scale"]

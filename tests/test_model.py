@@ -506,7 +506,7 @@ def test_a_cards_profile_row_is_what_the_node_runs_with_that_file(tmp_path):
     import argparse
 
     from inseggan_ros.core import settings
-    from inseggan_ros.cli.main import _also_profiles
+    from inseggan_ros.cli.common import also_profiles
 
     config = Path(__file__).resolve().parents[1] / "config"
     partial = tmp_path / "partial.yaml"
@@ -514,7 +514,7 @@ def test_a_cards_profile_row_is_what_the_node_runs_with_that_file(tmp_path):
     base = settings.InferenceConfig(refine_hypotheses=8, refine_keep=1, superpixel_scale=160,
                                     split_scale=800)
     files = [config / "fastest.yaml", config / "quality.yaml", partial]
-    rows = _also_profiles(argparse.Namespace(also_profile=files), base)
+    rows = also_profiles(argparse.Namespace(also_profile=files), base)
     assert (rows["partial"].refine_steps, rows["partial"].superpixel_scale,
             rows["partial"].refine_hypotheses) == (4, 160, 8)
     assert (rows["fastest"].superpixel_scale, rows["fastest"].split_scale) == (0, 0)
@@ -522,7 +522,7 @@ def test_a_cards_profile_row_is_what_the_node_runs_with_that_file(tmp_path):
     assert "superpixel_scale" not in quality and "split_scale" not in quality
     assert (rows["quality"].superpixel_scale, rows["quality"].split_scale) == (160, 800)
     assert rows["quality"].refine_steps == quality["refine_steps"] > 0
-    assert _also_profiles(argparse.Namespace(also_profile=None), base) == {}
+    assert also_profiles(argparse.Namespace(also_profile=None), base) == {}
 
 
 def test_a_parameters_file_applies_over_realtime_for_a_checkpoint_without_settings(tmp_path):

@@ -20,7 +20,7 @@ def _worker(args) -> int:
 
 
 def run(cfg: SceneConfig, scenes: int = 100, workers: int = 2, warmup: int = 3) -> dict:
-    """Measure and return figures (also printed by the CLI)."""
+    """Measure and return figures (`report` prints them)."""
     with BinSimulator(cfg) as sim:
         for s in range(warmup):
             sim.render(10_000 + s)
@@ -50,3 +50,48 @@ def run(cfg: SceneConfig, scenes: int = 100, workers: int = 2, warmup: int = 3) 
         result.update({"workers": workers, "parallel_scenes_per_s": done / elapsed,
                        "parallel_scaling": (done / elapsed) / result["one_core_scenes_per_s"]})
     return result
+
+
+def report(r: dict) -> str:
+    """The figures as `make bench` prints them."""
+    lines = [f"simulator benchmark: {r['instances']} x {r['object']} at {r['resolution']}, "
+             f"{r['scenes']} scenes",
+             f"  one core : {r['one_core_scenes_per_s']:7.1f} scenes/s  "
+             f"({r['ms_per_scene']:.1f} ms/scene:"
+             f" physics {r['ms_physics']:.1f} ms, render {r['ms_render']:.1f} ms)"]
+    if "workers" in r:
+        lines.append(f"  {r['workers']} workers: {r['parallel_scenes_per_s']:7.1f} scenes/s  "
+                     f"(x{r['parallel_scaling']:.2f} of one core)")
+    lines.append(f"  vs the paper's PhysX pipeline (~2 s/scene): "
+                 f"x{r['speedup_vs_paper_physx']:.0f}")
+    if (r["resolution"], r["instances"]) == ("224x224", 5):
+        met = "met" if r["one_core_scenes_per_s"] >= 25 else "NOT met"
+        lines.append(f"  target >= 25 scenes/s per core (224x224, 5 objects): {met}")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    """`python -m tools.bench_sim [--scenes 100 --workers 2 --json FILE]` (`make bench`): the
+    scene flags of `inseggan simulate`."""
+    import argparse
+
+    from inseggan_ros.cli.common import add_scene_args, scene_config
+
+    parser = argparse.ArgumentParser(prog="python -m tools.bench_sim",
+                                     description="simulator throughput (scenes/s)")
+    add_scene_args(parser)
+    parser.add_argument("--scenes", type=int, default=100)
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--json", help="also write the figures to this JSON file")
+    args = parser.parse_args(argv)
+    r = run(scene_config(args), scenes=args.scenes, workers=args.workers)
+    print(report(r))
+    if args.json:
+        from inseggan_ros.evaluation.evaluate import write_json
+
+        write_json(args.json, r)  # atomic
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -55,7 +55,7 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, inference=None,
     from inseggan_ros.core import checkpoint as ckpt
     from inseggan_ros.data import datasets as data_mod
     from inseggan_ros.evaluation import evaluate
-    from inseggan_ros.runtime.segment import InferenceConfig, Segmenter, calibrate_tau, infer
+    from inseggan_ros.runtime.segment import InferenceConfig, Segmenter
 
     torch.set_num_threads(1)  # as the card says, and as the node runs by default: the pick
     # among refinement starts can tip with another thread count's rounding
@@ -65,87 +65,109 @@ def export_model(checkpoint_path, data_root, name: str, out_dir, inference=None,
     val = data_mod.load_sim_split(data_root, "val", seg.prep_cfg, limit=frames)
     test = data_mod.load_sim_split(data_root, "test", seg.prep_cfg, limit=frames)
 
-    # 1. tau with the shipped inference settings (on the z-buffered labels, before smoothing),
-    # unless a label head was trained on the z-buffer labels of its own tau
-    scores = {}
-    if state.get("label_head"):
-        tau = float(state["label_head"]["tau"])
-    else:
-        x = torch.from_numpy(val["x"])
-        renders = torch.cat([infer(seg.G, seg.encoder(inference.encoder_precision), x[i:i + 50],
-                                   refine_steps=inference.refine_steps,
-                                   hypotheses=inference.refine_hypotheses,
-                                   keep=inference.refine_keep,
-                                   swaps=inference.refine_swaps)["renders"]
-                             for i in range(0, len(x), 50)])
-        tau, scores = calibrate_tau(renders, torch.from_numpy(val["fg"]), val["labels"])
-    seg.tau = tau
+    # 1. tau with the shipped inference settings
+    seg.tau, scores = _calibrated_tau(seg, state, val)
     # as shipped: the calibration's own score where the labels are the z-buffer's alone
     plain = not seg.inference.smooth.iters and seg.inference.label_head == "off"
-    val_full = scores[tau] if plain and tau in scores else _val_miou(seg, val)
+    val_full = scores[seg.tau] if plain and seg.tau in scores else _val_miou(seg, val)
 
     # 2. half precision only if it costs nothing measurable
-    keep = {k: v for k, v in state.items() if k not in TRAINING_ONLY}
-    keep["distill_record"] = distill_record(state)  # the card's account, kept for a re-fit
-    fit = shape_fit_record(state)
-    if fit:  # its account, without the optimiser's state
-        keep["shape_fit"] = fit
-    keep["tau"] = tau
-    keep["inference"] = seg.inference.to_dict()
-    precision, val_half = "float32", None
-    if half:
-        G16, E16 = ({k: v.half().float() if v.is_floating_point() else v
-                     for k, v in keep[key].items()} for key in ("generator", "encoder"))
-        seg.G.load_state_dict(G16)
-        seg.E.load_state_dict(E16)
-        seg.encoder_changed()
-        val_half = _val_miou(seg, val)
-        if abs(val_half - val_full) < HALF_TOLERANCE:
-            precision = "float16"
-            for key in ("generator", "encoder"):
-                keep[key] = {k: v.half() if v.is_floating_point() else v
-                             for k, v in keep[key].items()}
-        else:
-            seg.G.load_state_dict({k: v.float() for k, v in state["generator"].items()})
-            seg.E.load_state_dict({k: v.float() for k, v in state["encoder"].items()})
-            seg.encoder_changed()
+    keep = _shipped_state(state, seg)
+    precision, val_half = _half_precision(seg, state, keep, val, val_full) if half \
+        else ("float32", None)
     keep["precision"] = precision
 
     # 3. the quality table on the test split (and, for reference, InSeGAN with more test-time
     # refinement than it ships with: better labels, slower frames)
     results = _test_results(seg, test, also)
-    summary = evaluate.summarise(results, len(test["x"]))
-
-    bag_scores = sample_bag_scores(seg, sample_bag) if sample_bag else None
-
     meta = json.loads((Path(data_root) / "meta.json").read_text())
-    tcfg = state["train_config"]
     card = {
         "name": name, "object": meta["scene"]["object"], "n_instances": seg.model_cfg.n_instances,
         "camera": meta["scene"]["camera"], "noise": meta["scene"]["noise"],
         "data": {"root": str(data_root), "seed": meta.get("seed"), "counts": meta.get("counts")},
         "model_config": state["model_config"], "train_config_name": notes or None,
-        "train_config": tcfg, "iterations": state["iteration"],
+        "train_config": state["train_config"], "iterations": state["iteration"],
         "wall_minutes": round(state["elapsed_seconds"] / 60, 1),
         "hardware": f"{platform.machine()} CPU, {os.cpu_count()} cores (torch threads: 1)",
-        "tau": tau, **_settings_fields(seg, inference, also),
+        "tau": seg.tau, **_settings_fields(seg, inference, also),
         "distillation": distill_record(state),
-        "shape_fit": fit, "centre_votes": centres_record(state),
+        "shape_fit": shape_fit_record(state), "centre_votes": centres_record(state),
         "precision": precision,
-        "sample_bag": sample_bag, "sample_bag_scores": bag_scores,
+        "sample_bag": sample_bag,
+        "sample_bag_scores": sample_bag_scores(seg, sample_bag) if sample_bag else None,
         "val_miou": {"float32": val_full, "float16": val_half},
-        "test": summary,
+        "test": evaluate.summarise(results, len(test["x"])),
     }
-    previous = Path(out_dir) / "card.json"  # a re-export keeps the other runs on the same split
+    _keep_training_runs(card, out_dir)
+    _write_model_folder(out_dir, keep, card, test, results)
+    return card
+
+
+def _calibrated_tau(seg, state: dict, val: dict) -> tuple[float, dict]:
+    """The tau of the segmenter's settings, on the z-buffered labels before smoothing, from the
+    labelled validation frames -> (tau, {tau: score}); a label head's own tau where the model
+    has one (it was trained on the z-buffer labels of that tau)."""
+    import torch
+
+    from inseggan_ros.runtime.segment import calibrate_tau, infer
+
+    if state.get("label_head"):
+        return float(state["label_head"]["tau"]), {}
+    inference = seg.inference
+    x = torch.from_numpy(val["x"])
+    renders = torch.cat([infer(seg.G, seg.encoder(inference.encoder_precision), x[i:i + 50],
+                               refine_steps=inference.refine_steps,
+                               hypotheses=inference.refine_hypotheses,
+                               keep=inference.refine_keep,
+                               swaps=inference.refine_swaps)["renders"]
+                         for i in range(0, len(x), 50)])
+    return calibrate_tau(renders, torch.from_numpy(val["fg"]), val["labels"])
+
+
+def _shipped_state(state: dict, seg) -> dict:
+    """The checkpoint as a model folder keeps it: no training-only keys, the card's account of
+    the distillation and of a shape fit (without the optimiser's state), tau and settings."""
+    keep = {k: v for k, v in state.items() if k not in TRAINING_ONLY}
+    keep["distill_record"] = distill_record(state)  # the card's account, kept for a re-fit
+    fit = shape_fit_record(state)
+    if fit:
+        keep["shape_fit"] = fit
+    keep["tau"] = seg.tau
+    keep["inference"] = seg.inference.to_dict()
+    return keep
+
+
+def _half_precision(seg, state: dict, keep: dict, val: dict, val_full: float
+                    ) -> tuple[str, float]:
+    """The weights in float16 where that changes the validation mIoU by less than
+    HALF_TOLERANCE (`keep`'s weights halved then; the segmenter left as it was otherwise) ->
+    (the precision stored, the validation mIoU with float16 weights)."""
+    G16, E16 = ({k: v.half().float() if v.is_floating_point() else v
+                 for k, v in keep[key].items()} for key in ("generator", "encoder"))
+    seg.G.load_state_dict(G16)
+    seg.E.load_state_dict(E16)
+    seg.encoder_changed()
+    val_half = _val_miou(seg, val)
+    if abs(val_half - val_full) < HALF_TOLERANCE:
+        for key in ("generator", "encoder"):
+            keep[key] = {k: v.half() if v.is_floating_point() else v
+                         for k, v in keep[key].items()}
+        return "float16", val_half
+    seg.G.load_state_dict({k: v.float() for k, v in state["generator"].items()})
+    seg.E.load_state_dict({k: v.float() for k, v in state["encoder"].items()})
+    seg.encoder_changed()
+    return "float32", val_half
+
+
+def _keep_training_runs(card: dict, out_dir) -> None:
+    """A re-export keeps the other runs the folder's card records on the same split."""
+    previous = Path(out_dir) / "card.json"
     if previous.is_file():
         old_card = json.loads(previous.read_text())
         runs, old_data = old_card.get("training_runs"), old_card.get("data", {})
         if runs and old_data.get("root") == card["data"]["root"] \
                 and old_data.get("counts") == card["data"]["counts"]:
             card["training_runs"] = runs
-
-    _write_model_folder(out_dir, keep, card, test, results)
-    return card
 
 
 def apply_settings(model_dir, data_root, inference, also: dict | None = None) -> dict:
@@ -263,7 +285,8 @@ TRAINING_ONLY = ("discriminator", "optimizers", "rng", "format", "distill")
 
 def export_label_free(checkpoint_path, name: str, out_dir, calib: dict, held: dict,
                       source: dict, inference=None, vote_piles: dict | None = None,
-                      vote_scales=None, sample_bag: str | None = None, camera=None) -> dict:
+                      vote_scales=None, sample_bag: str | None = None, camera=None,
+                      recipe: dict | None = None) -> dict:
     """Ship a model from frames without ground truth (a recording of the user's own part):
     out_dir/model.pt (inference weights, float32, tau calibrated on `calib` without labels,
     the inference settings), card.json, README.md, qualitative.png.
@@ -280,31 +303,19 @@ def export_label_free(checkpoint_path, name: str, out_dir, calib: dict, held: di
     `camera`: the camera the template was learned through (`sim.camera.CameraConfig`), which
     sizes it in metres (`inseggan simulate --object`, `card-shape`): recorded with the training
     data where the checkpoint's own record lacks it (a loop started from a data set's model,
-    whose data set a clone does not have). Accepts a training checkpoint or an exported
-    model.pt."""
-    from dataclasses import asdict, replace
-
+    whose data set a clone does not have). `recipe`: the resolved configuration of the run
+    that made the model (`inseggan loop`'s, with its `commit`), stored on the card as `recipe`
+    and `commit`. Accepts a training checkpoint or an exported model.pt."""
     import torch
 
     from inseggan_ros.core import checkpoint as ckpt
     from inseggan_ros.evaluation import evaluate
     from inseggan_ros.evaluation import selfcheck
-    from inseggan_ros.evaluation import vote_scale
-    from inseggan_ros.runtime.segment import Segmenter
 
     torch.set_num_threads(1)  # as the card says, and as the node runs by default
     state = ckpt.load(checkpoint_path)
-    seg = Segmenter.from_checkpoint(checkpoint_path, device="cpu")
-    if inference is not None:
-        seg.inference = inference
-    seg.tau, tau_scores = selfcheck.calibrate(seg, calib["x"], calib["fg"])
-    if state.get("label_head"):  # a label head was trained on the z-buffer labels of its tau
-        seg.tau = float(state["label_head"]["tau"])
-    vote = None
-    if vote_piles is not None:  # the renders, hence tau, do not depend on the vote
-        vote = vote_scale.choose(seg, vote_piles, vote_scale.SCALES if vote_scales is None
-                                 else vote_scales)
-        seg.inference = replace(seg.inference, superpixel_scale=vote["scale"])
+    seg, tau_scores, vote = _label_free_segmenter(checkpoint_path, state, calib, inference,
+                                                  vote_piles, vote_scales)
     out = selfcheck.segment_frames(seg, held["x"], held["fg"])
     measures = selfcheck.measure(seg, held["x"], held["fg"], out)
     labelled = None
@@ -312,17 +323,7 @@ def export_label_free(checkpoint_path, name: str, out_dir, calib: dict, held: di
         results = evaluate.run_methods(held, seg.model_cfg.n_instances, seg,
                                        ["kmeans", "felzenszwalb"], progress=False)
         labelled = evaluate.summarise(results, len(held["x"]))
-    bag_scores = sample_bag_scores(seg, sample_bag) if sample_bag else None
-
-    keep = {k: v for k, v in state.items() if k not in TRAINING_ONLY}
-    keep.update(tau=seg.tau, inference=seg.inference.to_dict(), precision="float32",
-                distill_record=distill_record(state))
-    fit = shape_fit_record(state)
-    if fit:  # its account, without the optimiser's state (twice the model's own size)
-        keep["shape_fit"] = fit
-    if camera is not None and not (state.get("data") or {}).get("camera"):
-        keep["data"] = {**(state.get("data") or {}), "camera": asdict(camera)}
-    inf = seg.inference
+    keep = _label_free_state(state, seg, camera)
     card = {
         "name": name, "label_free": True, "n_instances": seg.model_cfg.n_instances,
         "model_config": state["model_config"], "train_config": state.get("train_config"),
@@ -337,14 +338,12 @@ def export_label_free(checkpoint_path, name: str, out_dir, calib: dict, held: di
                         "scores": {f"{t:.3f}": v for t, v in tau_scores.items()}},
         "held_out": {"frames": len(held["x"]), "index": _span(held.get("index")),
                      "stamp_ns": _span(held.get("stamp_ns"))},
-        "tau": seg.tau, "refine_steps": inf.refine_steps, "hypotheses": inf.refine_hypotheses,
-        "smooth_iters": inf.smooth.iters, "keep": inf.refine_keep, "inference": inf.to_dict(),
-        "encoder_precision": seg.resolve_precision(inf.encoder_precision),
-        "centre_precision": seg.resolve_precision(inf.centre_precision),
-        "precision": "float32",  # no labels to show that float16 weights change nothing
+        **_label_free_settings(seg),
         "measures": measures, "labelled": labelled, "vote_scale": vote,
-        "shape_fit": fit, "centre_votes": centres_record(state),
-        "sample_bag": sample_bag, "sample_bag_scores": bag_scores,
+        "shape_fit": shape_fit_record(state), "centre_votes": centres_record(state),
+        "sample_bag": sample_bag,
+        "sample_bag_scores": sample_bag_scores(seg, sample_bag) if sample_bag else None,
+        **_recipe_fields(recipe),
     }
 
     def write(tmp: Path) -> None:
@@ -357,11 +356,79 @@ def export_label_free(checkpoint_path, name: str, out_dir, calib: dict, held: di
     return card
 
 
+def _label_free_segmenter(checkpoint_path, state: dict, calib: dict, inference,
+                          vote_piles: dict | None, vote_scales):
+    """The segmenter a label-free export ships: `inference` (default: the checkpoint's), tau
+    calibrated on `calib` without labels (a label head's own where the model has one), the
+    vote's scale chosen on `vote_piles` where given -> (segmenter, {tau: score}, the vote's
+    choice or None)."""
+    from dataclasses import replace
+
+    from inseggan_ros.evaluation import selfcheck
+    from inseggan_ros.evaluation import vote_scale
+    from inseggan_ros.runtime.segment import Segmenter
+
+    seg = Segmenter.from_checkpoint(checkpoint_path, device="cpu")
+    if inference is not None:
+        seg.inference = inference
+    seg.tau, tau_scores = selfcheck.calibrate(seg, calib["x"], calib["fg"])
+    if state.get("label_head"):  # a label head was trained on the z-buffer labels of its tau
+        seg.tau = float(state["label_head"]["tau"])
+    vote = None
+    if vote_piles is not None:  # the renders, hence tau, do not depend on the vote
+        vote = vote_scale.choose(seg, vote_piles, vote_scale.SCALES if vote_scales is None
+                                 else vote_scales)
+        seg.inference = replace(seg.inference, superpixel_scale=vote["scale"])
+    return seg, tau_scores, vote
+
+
+def _label_free_state(state: dict, seg, camera) -> dict:
+    """The checkpoint as a label-free model folder keeps it: no training-only keys, tau and
+    settings, float32, the card's account of the distillation and of a shape fit (without the
+    optimiser's state, twice the model's own size), and `camera` with the training data where
+    the checkpoint's own record lacks one."""
+    from dataclasses import asdict
+
+    keep = {k: v for k, v in state.items() if k not in TRAINING_ONLY}
+    keep.update(tau=seg.tau, inference=seg.inference.to_dict(), precision="float32",
+                distill_record=distill_record(state))
+    fit = shape_fit_record(state)
+    if fit:
+        keep["shape_fit"] = fit
+    if camera is not None and not (state.get("data") or {}).get("camera"):
+        keep["data"] = {**(state.get("data") or {}), "camera": asdict(camera)}
+    return keep
+
+
+def _label_free_settings(seg) -> dict:
+    """A label-free card's record of tau and the settings the model ships with."""
+    inf = seg.inference
+    return {
+        "tau": seg.tau, "refine_steps": inf.refine_steps, "hypotheses": inf.refine_hypotheses,
+        "smooth_iters": inf.smooth.iters, "keep": inf.refine_keep, "inference": inf.to_dict(),
+        "encoder_precision": seg.resolve_precision(inf.encoder_precision),
+        "centre_precision": seg.resolve_precision(inf.centre_precision),
+        "precision": "float32",  # no labels to show that float16 weights change nothing
+    }
+
+
+def _recipe_fields(recipe: dict | None) -> dict:
+    """The card's `recipe` (the run's resolved configuration, every option) and `commit` (the
+    code's git commit, or "unknown"), where the model was made by a run that resolved one."""
+    if recipe is None:
+        return {}
+    from inseggan_ros.core.recipe import META, plain
+
+    return {"recipe": plain({k: v for k, v in recipe.items() if k not in META}),
+            "commit": recipe.get("commit", "unknown")}
+
+
 def export_from_bag(checkpoint_path, bag, name: str, out_dir, depth_topic: str | None = None,
                     labels_topic: str | None = None, held_out: float = 0.2,
                     frames: int | None = 200, inference=None,
                     vote_piles: dict | None = None, vote_scales=None,
-                    sample_bag: str | None = None, camera=None) -> dict:
+                    sample_bag: str | None = None, camera=None,
+                    recipe: dict | None = None) -> dict:
     """`export_label_free` on a bag: tau from its first frames, the measures on its last
     `held_out` fraction (at most `frames` of each, spread evenly); labels only from
     `labels_topic`, when named."""
@@ -384,13 +451,14 @@ def export_from_bag(checkpoint_path, bag, name: str, out_dir, depth_topic: str |
               "held_out_rule": f"the last {100 * held_out:.0f} % of the bag's frames in time "
                                "order"}
     return export_label_free(checkpoint_path, name, out_dir, calib, held, source, inference,
-                             vote_piles, vote_scales, sample_bag, camera)
+                             vote_piles, vote_scales, sample_bag, camera, recipe)
 
 
 def export_from_dataset(checkpoint_path, data_root, name: str, out_dir,
                         frames: int | None = 200, inference=None,
                         vote_piles: dict | None = None, vote_scales=None,
-                        sample_bag: str | None = None, camera=None) -> dict:
+                        sample_bag: str | None = None, camera=None,
+                        recipe: dict | None = None) -> dict:
     """`export_label_free` on a simulated data set, as if it had no labels: tau from its
     validation split without labels, the measures on its test split (whose labels give the
     mIoU rows)."""
@@ -412,7 +480,7 @@ def export_from_dataset(checkpoint_path, data_root, name: str, out_dir,
               "description": f"simulated data set `{data_root}` (val and test splits)",
               "held_out_rule": "its test split"}
     return export_label_free(checkpoint_path, name, out_dir, calib, held, source, inference,
-                             vote_piles, vote_scales, sample_bag, camera)
+                             vote_piles, vote_scales, sample_bag, camera, recipe)
 
 
 def _span(values) -> list[int] | None:
@@ -442,7 +510,7 @@ def label_free_markdown(card: dict) -> str:
         f"{m['composite']}, nf {m['nf']}, latent {m['latent_dim']}",
         f"* **Training:** {trained}; {card['iterations']} iterations, {card['wall_minutes']} min "
         f"wall time",
-        *_distill_line(card),
+        *_distill_line(card), *_recipe_line(card),
         f"* **Checked on:** {src['description']}: {src['frames']} frames. tau calibrated without "
         f"labels on {cal['frames']} frames{_frames_text(cal)}, measured on {held['frames']} "
         f"held-out frames{_frames_text(held)}: {src['held_out_rule']}",
@@ -465,6 +533,15 @@ def label_free_markdown(card: dict) -> str:
               "rendered alone" + (" | ground truth" if card.get("labelled") else ""), "",
               *_shape_lines(card)]
     return "\n".join(lines)
+
+
+def _recipe_line(card: dict) -> list[str]:
+    """The README's line on the recipe the card stores, where it stores one."""
+    if "recipe" not in card:
+        return []
+    return [f"* **Recipe:** `inseggan loop` with the card's `recipe` (every option; "
+            f"`inseggan ship` writes it as config/recipes/{card['name']}.yaml), code commit "
+            f"{card.get('commit', 'unknown')}"]
 
 
 def sample_bag_scores(seg, bag_name: str) -> dict:

@@ -330,22 +330,24 @@ def _shipped_segmenter(file: Path, cfg: LoopConfig):
 
 
 def _export(finished: Path, data, cfg: LoopConfig, out: Path, piles: dict | None = None,
-            camera=None) -> dict:
+            camera=None, recipe: dict | None = None) -> dict:
     """Stage 5: the model shipped with `cfg.export_settings` (a training checkpoint carries
     only the bare defaults: no refinement, one starting point, no smoothing); with labelled
     `piles` (the last simulation's validation split; `run` loads them only where
     `cfg.vote_scales` names scales), the vote's scale chosen on them among those. `camera`:
     the one the template was learned through (`sim.learned.model_camera` of the loop's
-    model), recorded where the checkpoint lacks it."""
+    model), recorded where the checkpoint lacks it. `recipe`: the run's resolved
+    configuration, for the card."""
     from inseggan_ros.evaluation.modelcard import export_from_bag, export_from_dataset
 
     inference = _shipped_segmenter(finished, cfg).inference
     if isinstance(data, BagFrames):
         return export_from_bag(finished, data.path, cfg.name, out, data.topic, data.labels_topic,
                                data.held_out, inference=inference, vote_piles=piles,
-                               vote_scales=cfg.vote_scales, camera=camera)
+                               vote_scales=cfg.vote_scales, camera=camera, recipe=recipe)
     return export_from_dataset(finished, data, cfg.name, out, inference=inference,
-                               vote_piles=piles, vote_scales=cfg.vote_scales, camera=camera)
+                               vote_piles=piles, vote_scales=cfg.vote_scales, camera=camera,
+                               recipe=recipe)
 
 
 def run_self_fit(model, data, out, cfg: LoopConfig, progress: bool = True) -> dict:
@@ -625,13 +627,73 @@ def scale_check(file: Path, data, out: Path, cfg: LoopConfig) -> dict:
 
 
 def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
-        train_cfg=None) -> dict:
+        train_cfg=None, recipe: dict | None = None) -> dict:
     """The loop for `model` (its learned template) and the user's frames `data` (a data set's
     folder, or `BagFrames`) -> summary (also out/summary.json). With `model` None the shape is
-    learned first with `train_cfg`."""
+    learned first with `train_cfg`. `recipe`: the run's resolved configuration (`inseggan
+    loop`'s options, with `command` and `commit`), written as out/recipe.yaml (atomically)
+    once the run is known to start, and stored on the model's card."""
     from inseggan_ros.core import checkpoint
-    from inseggan_ros.sim.dataset import load_meta
+    from inseggan_ros.core import recipe as recipe_file
     from inseggan_ros.sim.learned import model_camera
+
+    meta, planned, thickness, size_rounds = _check(model, data, out, cfg, train_cfg)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)  # drops the default stage for an unsized folder
+    if recipe is not None:
+        recipe_file.write(out / "recipe.yaml", recipe, RECIPE_HEADER)
+    seconds: dict[str, float] = {}
+    stages = tqdm(total=(2 if model is not None else 3) + bool(cfg.iterations)
+                  + bool(cfg.head_iterations) + (cfg.match_piles is not None)
+                  + (cfg.convex is not None)
+                  + bool(cfg.self_frames) + bool(cfg.centre_iterations)
+                  + (thickness != "off") + size_rounds,
+                  desc="loop", unit="stage", disable=not progress,
+                  position=0)
+    tick = _stage_timer(seconds, stages)
+    if model is None:
+        model = tick("shape", learn_shape, data, out / "shape", train_cfg, progress)
+    file = _model_file(model).resolve()
+    if meta is not None:
+        _same_view(file, data)
+    state = checkpoint.load(file)
+    view = pile_view(data, state)
+    camera = model_camera(file, state)  # its template's size: the model folder's card names it
+
+    file, part = _template_stages(file, data, out, cfg, thickness, tick, progress)
+    sim, encoder = out / "sim", out / "encoder"
+    finished = _simulate_and_fit(file, data, meta, view, sim, encoder, cfg, seconds, "",
+                                 progress, part)
+    stages.update(1 + bool(cfg.iterations))
+    finished, sim, encoder, rounds = _size_rounds(finished, data, meta, view, out, cfg,
+                                                  size_rounds, tick, stages, progress)
+    finished = _finishing_stages(finished, sim, view, data, out, cfg, tick, progress)
+    card = tick("export", _export_stage, finished, sim, view, data, cfg, out, camera, recipe)
+    stages.close()
+
+    summary = {"model": str(model), "data": str(data) if meta is not None else data.describe(),
+               "config": asdict(cfg),
+               "seconds": seconds, "encoder": (json.loads((encoder / "summary.json").read_text())
+                                               if cfg.iterations else None),
+               "card": str(out / "model" / "card.json"), "tau": card.get("tau"),
+               "vote_scale": card.get("vote_scale")}
+    _summarise_templates(summary, out, planned, thickness, size_rounds, rounds, part)
+    write_json(out / "summary.json", summary)
+    return summary
+
+
+RECIPE_HEADER = ("inseggan loop: this run's configuration, every option after defaults (the "
+                 "flags' names,\nwith underscores). `inseggan loop --recipe recipe.yaml` runs it "
+                 "again; flags given\nbeside --recipe override its values.")
+
+
+def _check(model, data, out, cfg: LoopConfig, train_cfg) -> tuple:
+    """What the loop refuses, before any stage spends its time: a missing model, frames or
+    settings file, a sizing plan its template cannot take -> (the data set's meta.json, None
+    for a bag; the size stage planned; as it runs in `out`; the size rounds)."""
+    from inseggan_ros.core import checkpoint
+    from inseggan_ros.learning.selffit import check_settings
+    from inseggan_ros.sim.dataset import load_meta
 
     if (model is None) == (train_cfg is None):
         raise ValueError("give a trained model, or a training config to learn the shape with "
@@ -641,112 +703,98 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
     renderer = (train_cfg.model.renderer if model is None else checkpoint.load(
         _model_file(model))["model_config"].get("renderer", "learned"))
     thickness, size_rounds = size_plan(cfg, model is None, renderer)  # raises before any stage
-    from inseggan_ros.learning.selffit import check_settings
-
     check_settings(cfg.export_settings)
     if cfg.self_frames:
         check_settings(cfg.self_settings)
-    bag = data if isinstance(data, BagFrames) else None
     meta = None  # a data set's meta.json (None: the frames are a bag's)
-    if bag is None:
+    if not isinstance(data, BagFrames):
         meta = load_meta(data)  # raises with what is wrong
     else:
         from inseggan_ros.core.paths import resolve_bag
 
-        resolve_bag(str(bag.path), "--bag")  # a missing bag is named before anything else
-    out = Path(out)
-    planned = thickness
-    thickness = resume_plan(thickness, out)  # raises, or
-    out.mkdir(parents=True, exist_ok=True)  # drops the default stage for an unsized folder
-    seconds: dict[str, float] = {}
-    stages = tqdm(total=(2 if model is not None else 3) + bool(cfg.iterations)
-                  + bool(cfg.head_iterations) + (cfg.match_piles is not None)
-                  + (cfg.convex is not None)
-                  + bool(cfg.self_frames) + bool(cfg.centre_iterations)
-                  + (thickness != "off") + size_rounds,
-                  desc="loop", unit="stage", disable=not progress,
-                  position=0)
-    if model is None:
-        t0 = time.monotonic()
-        model = learn_shape(data, out / "shape", train_cfg, progress)
-        seconds["shape"] = round(time.monotonic() - t0, 1)
-        stages.update(1)
-    file = _model_file(model).resolve()
-    if bag is None:
-        _same_view(file, data)
-    state = checkpoint.load(file)
-    view = pile_view(data, state)
-    camera = model_camera(file, state)  # its template's size: the model folder's card names it
+        resolve_bag(str(data.path), "--bag")  # a missing bag is named before anything else
+    return meta, thickness, resume_plan(thickness, Path(out)), size_rounds
 
+
+def _stage_timer(seconds: dict, stages):
+    """tick(name, stage, *args): runs `stage(*args)`, records its seconds under `name` and
+    advances the progress bar by one stage -> the stage's result."""
+    def tick(name: str, stage, *args):
+        t0 = time.monotonic()
+        result = stage(*args)
+        seconds[name] = round(time.monotonic() - t0, 1)
+        stages.update(1)
+        return result
+
+    tick.seconds = seconds  # for the stages that record their own (`_simulate_and_fit`)
+    return tick
+
+
+def _template_stages(file: Path, data, out: Path, cfg: LoopConfig, thickness: str, tick,
+                     progress: bool) -> tuple[Path, Path | None]:
+    """Stages 0d (convex), 0b (size) and 0c (match), those asked for -> (the model from then
+    on, the piles' part where it is not the model's template: stage 0c's discs)."""
     if cfg.convex is not None:
-        t0 = time.monotonic()
-        file = convex_stage(file, data, out / "convex", cfg, progress)
-        seconds["convex"] = round(time.monotonic() - t0, 1)
-        stages.update(1)
+        file = tick("convex", convex_stage, file, data, out / "convex", cfg, progress)
     if thickness != "off":
-        t0 = time.monotonic()
-        file = size_stage(file, data, out / "size", cfg, thickness == "if_elongated")
-        seconds["size"] = round(time.monotonic() - t0, 1)
-        stages.update(1)
-    part = None  # the piles' part: the model's template, or stage 0c's discs
+        file = tick("size", size_stage, file, data, out / "size", cfg,
+                    thickness == "if_elongated")
+    part = None
     if cfg.match_piles is not None:
-        t0 = time.monotonic()
-        part = match_stage(file, data, out / "match", cfg, progress)
-        seconds["match"] = round(time.monotonic() - t0, 1)
-        stages.update(1)
-    sim, encoder = out / "sim", out / "encoder"
-    finished = _simulate_and_fit(file, data, meta, view, sim, encoder, cfg, seconds, "",
-                                 progress, part)
-    stages.update(1 + bool(cfg.iterations))
-    rounds = []
+        part = tick("match", match_stage, file, data, out / "match", cfg, progress)
+    return file, part
+
+
+def _size_rounds(finished: Path, data, meta, view: dict, out: Path, cfg: LoopConfig,
+                 size_rounds: int, tick, stages, progress: bool) -> tuple:
+    """Stage 2b, up to `size_rounds` rounds: the scale chosen; where it is not 1, stages 1 and
+    2 again from the scaled model -> (the model, its piles, its encoder folder, each round's
+    choice)."""
+    sim, encoder, rounds = out / "sim", out / "encoder", []
     for k in range(1, size_rounds + 1):
-        t0 = time.monotonic()
-        chosen = scale_check(finished, data, out / f"size_round{k}", cfg)
-        seconds[f"scale{k}"] = round(time.monotonic() - t0, 1)
+        chosen = tick(f"scale{k}", scale_check, finished, data, out / f"size_round{k}", cfg)
         rounds.append(chosen)
-        stages.update(1)
         if chosen["scale"] == 1.0:
             break
         stages.total += 1 + bool(cfg.iterations)
         sim, encoder = out / f"size_round{k}" / "sim", out / f"size_round{k}" / "encoder"
         finished = _simulate_and_fit(Path(chosen["start"]), data, meta, view, sim, encoder,
-                                     cfg, seconds, str(k), progress)
+                                     cfg, tick.seconds, str(k), progress)
         stages.update(1 + bool(cfg.iterations))
+    return finished, sim, encoder, rounds
 
+
+def _finishing_stages(finished: Path, sim: Path, view: dict, data, out: Path, cfg: LoopConfig,
+                      tick, progress: bool) -> Path:
+    """Stages 3 (head), 4 (self) and 4b (centres), those asked for -> the model to ship."""
     if cfg.head_iterations:
-        t0 = time.monotonic()
-        finished = label_head_stage(finished, sim, data, out / "head", cfg, progress)
-        seconds["head"] = round(time.monotonic() - t0, 1)
-        stages.update(1)
+        finished = tick("head", label_head_stage, finished, sim, data, out / "head", cfg,
+                        progress)
     if cfg.self_frames:
-        t0 = time.monotonic()
-        finished = self_stage(finished, data, out / "self", cfg, progress)
-        seconds["self"] = round(time.monotonic() - t0, 1)
-        stages.update(1)
+        finished = tick("self", self_stage, finished, data, out / "self", cfg, progress)
     if cfg.centre_iterations:
-        t0 = time.monotonic()
         folder = "centres" if cfg.centre_teacher == "piles" else "centres_self"
-        finished = centres_stage(finished, sim, view, data, out / folder, cfg, progress)
-        seconds["centres"] = round(time.monotonic() - t0, 1)
-        stages.update(1)
+        finished = tick("centres", centres_stage, finished, sim, view, data, out / folder, cfg,
+                        progress)
+    return finished
 
-    t0 = time.monotonic()
-    piles = None  # the vote's scale is chosen on the last piles' validation split
+
+def _export_stage(finished: Path, sim: Path, view: dict, data, cfg: LoopConfig, out: Path,
+                  camera, recipe: dict | None) -> dict:
+    """Stage 5: the vote's scale chosen on the last piles' validation split (where
+    `cfg.vote_scales` names scales), then `_export` -> the card."""
+    piles = None
     if cfg.vote_scales:
         from inseggan_ros.data import datasets as data_mod
 
         piles = data_mod.load_sim_split(sim, "val", limit=100, **view)
-    card = _export(finished, data, cfg, out / "model", piles, camera)
-    seconds["export"] = round(time.monotonic() - t0, 1)
-    stages.update(1)
-    stages.close()
+    return _export(finished, data, cfg, out / "model", piles, camera, recipe)
 
-    summary = {"model": str(model), "data": str(data) if bag is None else bag.describe(),
-               "config": asdict(cfg),
-               "seconds": seconds, "encoder": (json.loads((encoder / "summary.json").read_text())
-                                               if cfg.iterations else None),
-               "card": str(out / "model" / "card.json"), "tau": card.get("tau"),
-               "vote_scale": card.get("vote_scale")}
+
+def _summarise_templates(summary: dict, out: Path, planned: str, thickness: str,
+                         size_rounds: int, rounds: list, part: Path | None) -> None:
+    """The summary's account of the sizing and template stages: what was planned and run, the
+    size stage's record, each round's scale, the matched discs."""
     summary["sizing"] = {"by_thickness": thickness, "rounds": size_rounds}
     if planned != thickness:
         summary["sizing"]["not_by_thickness"] = ("the folder's piles were made without the "
@@ -759,5 +807,3 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
         match = json.loads((out / "match" / "search" / "summary.json").read_text())
         summary["match"] = {"part": str(part), "best": match["best"], "discs": match["discs"],
                             "variants": len(match["coarse"]) + len(match["fine"])}
-    write_json(out / "summary.json", summary)
-    return summary
