@@ -51,7 +51,8 @@ def test_a_tiny_loop_explains_held_out_scenes_of_its_shape_better_than_its_start
             "--workers", "2", "--out", user, check=True, timeout=600)
     out = tmp / "loop"
     args = ["loop", "--model", MODEL, "--data", user, "--out", out, "--scenes", "96",
-            "--val-scenes", "16", "--iterations", "150", "--workers", "2", "--quiet"]
+            "--val-scenes", "16", "--iterations", "150", "--centre-iterations", "0", "--workers",
+            "2", "--quiet"]
     p = run_cli(*args, check=True, timeout=900)
     assert "loop done" in p.stdout
     summary = json.loads((out / "summary.json").read_text())
@@ -167,7 +168,7 @@ def test_one_command_from_a_bag_learns_the_shape_then_ships_a_model(tmp):
     args = ["loop", "--bag", bag, "--instances", "4", "--noise", "realsense", "--labels-topic",
             "/camera/depth/instance_labels", "--out", out, "--train-iterations", "10",
             "--eval-every", "5", "--scenes", "16", "--val-scenes", "4", "--iterations", "10",
-            "--head-iterations", "5", "--quiet"]
+            "--head-iterations", "5", "--centre-iterations", "0", "--quiet"]
     p = run_cli(*args, check=True, timeout=900)
     assert "loop done" in p.stdout and "shape" in p.stdout
     summary = json.loads((out / "summary.json").read_text())
@@ -331,7 +332,8 @@ def test_the_loop_piles_a_disc_template_matched_to_the_frames_and_keeps_the_rod(
              "cuts a rod of spheres"),
             (["--model", rod, "--pile-lengths", "0.5,1"], "valid: with --match-piles"),
             (["--model", rod, "--match-pieces", "3"], "valid: with --match-piles"),
-            (["--model", rod, "--iterations", "0"], "no encoder stage) with centre_iterations"),
+            (["--model", rod, "--iterations", "0", "--centre-iterations", "0"],
+             "no encoder stage) with centre_iterations"),
             (["--model", rod, "--match-piles", "--match-walls", "6"], "walls 6 invalid"),
             (["--model", rod, "--match-piles", "--pile-tapers", "0.3,1"],
              "frustum of one disc"),  # the default two discs

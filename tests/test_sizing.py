@@ -136,8 +136,8 @@ def test_the_loop_sizes_the_rod_then_chooses_its_scale_and_resumes(cylinders, tm
     checkpoint.save(start, state)
     out = tmp / "loop"
     args = ["loop", "--model", start, "--data", cylinders, "--out", out, "--scenes", "12",
-            "--val-scenes", "4", "--iterations", "6", "--size-by-thickness", "--size-rounds",
-            "1", "--quiet"]
+            "--val-scenes", "4", "--iterations", "6", "--centre-iterations", "0",
+            "--size-by-thickness", "--size-rounds", "1", "--quiet"]
     p = run_cli(*args, check=True, timeout=900)
     assert "rod sized to the frames' thickness" in p.stdout, p.stdout
     summary = json.loads((out / "summary.json").read_text())

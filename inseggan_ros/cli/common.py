@@ -124,8 +124,9 @@ def frames_args(p, required: bool = True) -> None:
     p.add_argument("--instances", type=int, metavar="N",
                    help="with --bag (required): the parts in the bin")
     p.add_argument("--topic", help="with --bag: the depth topic (default: the only one)")
-    p.add_argument("--noise", help="with --bag: the simulator's noise preset for the piles "
-                                   "(none; a RealSense: realsense)")
+    p.add_argument("--noise", help="with --bag: the piles' sensor noise (auto, the default: "
+                                   "measured on the bag's own frames; or a preset: none, "
+                                   "realsense)")
     p.add_argument("--labels-topic", help="with --bag: a label image topic, for the card's "
                                           "mIoU rows only (never trained on)")
     p.add_argument("--held-out", type=float, default=0.2,
@@ -145,7 +146,7 @@ def bag_or_data(args):
             raise ValueError("--bag needs --instances N (the parts in the bin: the piles are "
                              "simulated with that many)")
         return BagFrames(args.bag, args.instances, args.topic, args.labels_topic,
-                         args.noise or "none", args.held_out)
+                         args.noise or "auto", args.held_out)
     only_bag = ("instances", "topic", "labels_topic", "noise")
     given = [f"--{k.replace('_', '-')}" for k in only_bag if getattr(args, k, None) is not None]
     if given:

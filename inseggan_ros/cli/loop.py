@@ -54,8 +54,8 @@ def _user_options(p) -> None:
                         "--out resumes where it stopped, stage by stage")
     p.add_argument("--name", default="model", help="the exported model's name (model)")
     p.add_argument("--train-minutes", type=float, metavar="MIN",
-                   help="the shape stage's budget in minutes (without --model; the training "
-                        "config's when neither this nor --train-iterations is given)")
+                   help="the shape stage's budget in minutes (without --model; 600 iterations "
+                        "when neither this nor --train-iterations is given)")
     p.add_argument("--workers", type=int, default=1, metavar="N",
                    help="simulation and self-labelling processes (1)")
     p.add_argument("--recipe", metavar="FILE",
@@ -78,7 +78,8 @@ def _shape_options(g) -> None:
                    help="without --model: the training config (cpu_spheres)")
     g.add_argument("--spheres", type=int, help="without --model: the rod's sphere count")
     g.add_argument("--train-iterations", type=int,
-                   help="without --model: the shape stage's iteration budget")
+                   help="without --model: the shape stage's iteration budget (600 unless "
+                        "--train-minutes is given)")
     g.add_argument("--train-seed", type=int, default=1, help="of the shape stage (1)")
     g.add_argument("--eval-every", type=int, default=100,
                    help="without --model: validate and checkpoint every N iterations (100)")
@@ -88,8 +89,8 @@ def _stage_options(g) -> None:
     """The piles, the encoder and the stages after it."""
     g.add_argument("--scenes", type=int, default=3000, help="simulated training scenes (3000)")
     g.add_argument("--val-scenes", type=int, default=200, help="and validation scenes (200)")
-    g.add_argument("--iterations", type=int, default=3000,
-                   help="encoder iterations (3000; 0: no encoder stage, the model's own "
+    g.add_argument("--iterations", type=int, default=0,
+                   help="encoder iterations (0, the default: no encoder stage, the model's own "
                         "encoder, with --centre-iterations or --head-iterations)")
     g.add_argument("--lr", type=float, default=3e-4, help="their learning rate (3e-4, cosine)")
     g.add_argument("--seed", type=int, default=11, help="of the simulated scenes (11)")
@@ -100,9 +101,9 @@ def _stage_options(g) -> None:
                    help="also train a label head on the same piles for this many iterations "
                         "and ship the model with it on (0: none; measured: "
                         "docs/experiments.md, a label head)")
-    g.add_argument("--centre-iterations", type=int, default=0,
-                   help="also train centre votes (`inseggan centres`) on the same piles for "
-                        "this many iterations and ship the model with them on (0: none)")
+    g.add_argument("--centre-iterations", type=int, default=3000,
+                   help="train centre votes (`inseggan centres`) on the same piles for this "
+                        "many iterations and ship the model with them on (3000; 0: none)")
     g.add_argument("--centre-teacher", choices=("piles", "self-labels"), default="piles",
                    help="what teaches the centre votes: the same piles' labels (piles, the "
                         "default), or the user's training frames labelled by the model itself "
@@ -256,9 +257,13 @@ def train_config(opts: dict):
     if opts["model"] is None:
         from inseggan_ros.learning.train import get_config
 
+        from inseggan_ros.learning.loop import SHAPE_ITERATIONS
+
+        iterations = opts["train_iterations"]
+        if iterations is None and opts["train_minutes"] is None:
+            iterations = SHAPE_ITERATIONS
         return get_config(opts["config"], spheres=opts["spheres"], seed=opts["train_seed"],
-                          max_minutes=opts["train_minutes"],
-                          max_iterations=opts["train_iterations"],
+                          max_minutes=opts["train_minutes"], max_iterations=iterations,
                           eval_every=opts["eval_every"], checkpoint_every=opts["eval_every"])
     if opts["train_minutes"] is not None or opts["train_iterations"] is not None:
         raise ValueError("--train-minutes/--train-iterations learn the shape first: without "
@@ -315,6 +320,11 @@ def report(summary: dict, out: Path, seconds: float) -> None:
     if summary.get("size_rounds"):
         print("template scales chosen by the frames' reconstruction, round by round: "
               + ", ".join(f"{r['scale']:g}" for r in summary["size_rounds"]))
+    v = summary.get("verdict") or {"ok": True}
+    if not v["ok"]:
+        print("WARNING: this model does not explain its frames (label-free verdict, on its "
+              "card; `inseggan ship` refuses it without --ship-failing):\n  "
+              + "\n  ".join(v["problems"]))
     if summary.get("vote_scale"):
         from inseggan_ros.evaluation.vote_scale import describe
 

@@ -191,7 +191,7 @@ def cmd_ship(args) -> int:
     from inseggan_ros.evaluation.ship import ship
 
     done = ship(args.run, args.name, args.into, args.recipes, force=args.force,
-                with_recipe=not args.no_recipe)
+                with_recipe=not args.no_recipe, ship_failing=args.ship_failing)
     card = done["card"]
     print(f"shipped {args.name}: {done['model']} (tau {card['tau']:.3f}; card and README)"
           + (f", recipe {done['recipe']}" if done["recipe"] else ", no recipe (--no-recipe)"))
@@ -212,6 +212,9 @@ def add_ship(sub) -> argparse.ArgumentParser:
                    help="where the recipe goes (default: config/recipes beside --into)")
     p.add_argument("--force", action="store_true",
                    help="replace an existing model folder and recipe of that name")
+    p.add_argument("--ship-failing", action="store_true",
+                   help="ship a model whose card says it does not explain its frames (the "
+                        "loop's label-free verdict)")
     p.add_argument("--no-recipe", action="store_true",
                    help="ship the model alone, from a run that wrote no recipe.yaml")
     p.set_defaults(func=cmd_ship)

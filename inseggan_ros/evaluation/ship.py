@@ -49,11 +49,12 @@ def _run_parts(run_dir: Path, with_recipe: bool) -> tuple[Path, dict, dict | Non
 
 
 def ship(run_dir, name: str, into="models", recipes=None, force: bool = False,
-         with_recipe: bool = True) -> dict:
+         with_recipe: bool = True, ship_failing: bool = False) -> dict:
     """RUN/model into `into`/NAME (model.pt, the pictures, card.json named NAME, README.md from
     it) and RUN/recipe.yaml into `recipes`/NAME.yaml (default: `default_recipes(into)`), its
     `name` NAME -> {"model": folder, "recipe": file or None, "card": the card}. Refuses an
-    existing folder or recipe without `force`, before writing either."""
+    existing folder or recipe without `force`, and a model whose card's verdict
+    (`evaluation.verdict`) failed without `ship_failing`, before writing either."""
     from inseggan_ros.core import recipe as recipe_file
     from inseggan_ros.evaluation.modelcard import markdown, write_folder
 
@@ -64,6 +65,11 @@ def ship(run_dir, name: str, into="models", recipes=None, force: bool = False,
     model_dir, card, recipe = _run_parts(run_dir, with_recipe)
     target = Path(into) / name
     recipe_target = Path(recipes or default_recipes(into)) / f"{name}.yaml"
+    judged = card.get("verdict") or {"ok": True}
+    if not judged["ok"] and not ship_failing:
+        raise ValueError(f"{model_dir / 'card.json'}: the loop judged this model not to explain "
+                         "its frames (" + "; ".join(judged["problems"]) + "); valid: a model "
+                         "whose card's verdict is ok, or --ship-failing to ship it anyway")
     for path in (target, recipe_target if recipe is not None else None):
         if path is not None and path.exists() and not force:
             raise FileExistsError(f"{path} exists; valid: another --name, or --force to "

@@ -87,6 +87,7 @@ from tqdm import tqdm
 
 from inseggan_ros.evaluation.evaluate import write_json
 from inseggan_ros.evaluation.vote_scale import SCALES as VOTE_SCALES
+from inseggan_ros.evaluation.verdict import verdict
 from inseggan_ros.runtime.model import build_models
 from inseggan_ros.learning.piles import (  # noqa: F401  (the loop's frames and piles)
     BagFrames, _as_list, _model_file, _same_view, pile_scene, pile_view)
@@ -100,14 +101,17 @@ if TYPE_CHECKING:
 # the size rounds a loop that learns its own rod runs unless told otherwise (measured on two
 # tilted recordings: docs/experiments.md, 2026-11-27)
 AUTO_SIZE_ROUNDS = 2
+# the shape stage's iterations where neither --train-iterations nor --train-minutes bound it:
+# what every recording-made shipped model's recipe gives (config/recipes/*_tilted.yaml)
+SHAPE_ITERATIONS = 600
 
 
 @dataclass(frozen=True)
 class LoopConfig:
     scenes: int = 3000  # labelled scenes of the learned part to train the encoder on
     val_scenes: int = 200  # and to choose its best checkpoint with
-    iterations: int = 3000  # encoder iterations (0: no encoder stage, the model's own encoder;
-    # then the piles teach what follows: centre votes or a label head)
+    iterations: int = 0  # encoder iterations (0, the shipped models' recipe: no encoder stage,
+    # the model's own encoder; then the piles teach what follows: centre votes or a label head)
     lr: float = 3e-4  # their learning rate (cosine schedule down to 0)
     label_weight: float = 1.0
     ownership_weight: float = 0.2
@@ -116,7 +120,8 @@ class LoopConfig:
     user_frames: int = 3000  # at most this many of them
     head_iterations: int = 0  # of a label head on the same scenes (0 = none; it helped the
     # cone and hurt the pin connector: docs/experiments.md)
-    centre_iterations: int = 0  # of centre votes on the same scenes (`centres.py`; 0 = none)
+    centre_iterations: int = 3000  # of centre votes on the same scenes (`centres.py`; 0 = none;
+    # on by default: every recording-made shipped model is made so)
     centre_teacher: str = "piles"  # what teaches them: "piles", the same scenes' labels; or
     # "self-labels", the user's training frames labelled by the model itself (no label read;
     # better where the learned part is not the real one: docs/experiments.md, 2026-11-29)
@@ -676,7 +681,7 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
                "seconds": seconds, "encoder": (json.loads((encoder / "summary.json").read_text())
                                                if cfg.iterations else None),
                "card": str(out / "model" / "card.json"), "tau": card.get("tau"),
-               "vote_scale": card.get("vote_scale")}
+               "vote_scale": card.get("vote_scale"), "verdict": card["verdict"]}
     _summarise_templates(summary, out, planned, thickness, size_rounds, rounds, part)
     write_json(out / "summary.json", summary)
     return summary
@@ -788,7 +793,10 @@ def _export_stage(finished: Path, sim: Path, view: dict, data, cfg: LoopConfig, 
         from inseggan_ros.data import datasets as data_mod
 
         piles = data_mod.load_sim_split(sim, "val", limit=100, **view)
-    return _export(finished, data, cfg, out / "model", piles, camera, recipe)
+    card = _export(finished, data, cfg, out / "model", piles, camera, recipe)
+    card["verdict"] = verdict(card)  # the label-free judgement `inseggan ship` reads
+    write_json(out / "model" / "card.json", card)
+    return card
 
 
 def _summarise_templates(summary: dict, out: Path, planned: str, thickness: str,

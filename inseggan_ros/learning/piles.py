@@ -19,7 +19,8 @@ class BagFrames:
     instances: int  # parts in the bin: the simulated piles hold this many
     topic: str | None = None  # the depth topic (None: the bag's only depth topic)
     labels_topic: str | None = None  # a label image topic, for the card's mIoU rows only
-    noise: str = "none"  # the simulator's sensor noise preset for the piles (`sim.noise`)
+    noise: str = "auto"  # the piles' sensor noise: "auto", measured on the bag's own frames
+    # (`sim.noise_fit`), or a preset (`sim.noise`)
     held_out: float = 0.2  # the last fraction of the frames: the card's, nothing else's
 
     def __post_init__(self):
@@ -28,8 +29,9 @@ class BagFrames:
         if not 1 <= self.instances <= 20:
             raise ValueError(f"instances {self.instances!r} invalid; valid: 1..20 (the parts "
                              "in the bin)")
-        if self.noise not in NOISE_PRESETS:
-            raise ValueError(f"noise {self.noise!r} invalid; valid: {', '.join(NOISE_PRESETS)}")
+        if self.noise != "auto" and self.noise not in NOISE_PRESETS:
+            raise ValueError(f"noise {self.noise!r} invalid; valid: auto (measured on the "
+                             f"bag's frames), {', '.join(NOISE_PRESETS)}")
         if not 0 < self.held_out < 1:
             raise ValueError(f"held_out {self.held_out!r} invalid; valid: between 0 and 1")
         object.__setattr__(self, "path", Path(self.path))
@@ -55,7 +57,8 @@ class BagFrames:
 
     def scene(self, part) -> "SceneConfig":
         """The simulator's scene: `part` piled `instances` times in the bin the bag shows, seen
-        by the camera its frames and CameraInfo give, with the noise preset."""
+        by the camera its frames and CameraInfo give, with the noise its frames show (or the
+        preset named)."""
         from dataclasses import replace
 
         from inseggan_ros.sim.noise import get_noise
@@ -63,8 +66,8 @@ class BagFrames:
         from inseggan_ros.sim.user_camera import camera_from_bag
 
         cam, est, _ = camera_from_bag(self.path, self.topic)
-        scene = SceneConfig(object=str(part), instances=self.instances, camera=cam,
-                            noise=get_noise(self.noise))
+        noise = est["noise"] if self.noise == "auto" else get_noise(self.noise)
+        scene = SceneConfig(object=str(part), instances=self.instances, camera=cam, noise=noise)
         return replace(scene, bin=replace(scene.bin, inner_size=tuple(est["bin_inner_size"])))
 
     def describe(self) -> dict:
