@@ -71,12 +71,18 @@ class Pick:
     free: bool  # rise <= PickConfig.free_rise: nothing on top of it
     top_depth: float  # metres: the depth of its highest part
     pixels: int  # valid pixels it was computed from
+    # quaternion (x, y, z, w) of its pose where it was moved to another frame
+    # (`transform_picks`); None: the camera's, from `normal`
+    rotation: np.ndarray | None = None
 
     def orientation(self) -> np.ndarray:
         """Quaternion (x, y, z, w) of a frame whose z axis is `normal` and whose x axis is the
-        camera's x axis projected onto the surface (the camera's y axis where x is normal)."""
+        camera's x axis projected onto the surface (the camera's y axis where x is normal);
+        in another frame (`transform_picks`) that same pose, expressed there."""
         from scipy.spatial.transform import Rotation
 
+        if self.rotation is not None:
+            return np.asarray(self.rotation, float)
         return Rotation.from_matrix(frame_from_normal(self.normal)).as_quat()
 
 
@@ -87,6 +93,47 @@ def frame_from_normal(normal: np.ndarray) -> np.ndarray:
     x = ref - z * (ref @ z)
     x /= np.linalg.norm(x)
     return np.column_stack([x, np.cross(z, x), z])
+
+
+# A target_rotation whose norm is further than this from 1 is refused (a typo, or the
+# components in another order); within it, it is normalised.
+QUATERNION_TOLERANCE = 1e-3
+
+
+def check_transform(translation, rotation) -> tuple[np.ndarray, np.ndarray]:
+    """A camera-to-target transform as parameters give it -> (translation (3,), unit quaternion
+    (x, y, z, w)); raises ValueError naming what is wrong and what is valid."""
+    t, q = np.asarray(list(translation), float), np.asarray(list(rotation), float)
+    if t.shape != (3,) or not np.isfinite(t).all():
+        raise ValueError(f"target_translation {list(translation)} invalid; valid: [x, y, z], "
+                         "three finite numbers (metres: the camera frame's origin in the "
+                         "target frame)")
+    if q.shape != (4,) or not np.isfinite(q).all():
+        raise ValueError(f"target_rotation {list(rotation)} invalid; valid: [x, y, z, w], four "
+                         "finite numbers (a unit quaternion: the camera frame's orientation in "
+                         "the target frame)")
+    norm = float(np.linalg.norm(q))
+    if abs(norm - 1.0) > QUATERNION_TOLERANCE:
+        raise ValueError(f"target_rotation {list(rotation)} invalid: its norm is {norm:.6f}; "
+                         f"valid: a unit quaternion [x, y, z, w] (norm within "
+                         f"{QUATERNION_TOLERANCE:g} of 1; [0, 0, 0, 1] = no rotation)")
+    return t, q / norm
+
+
+def transform_picks(picks: list[Pick], translation, rotation) -> list[Pick]:
+    """`picks` (camera frame) in a target frame where the camera frame has the pose
+    (`translation` (3,) metres, `rotation` unit quaternion (x, y, z, w)), as tf gives the
+    transform target <- camera: a point p moves to R p + t, the normal to R n, the pick's pose
+    (`Pick.orientation`) to R times it. The measures that belong to the camera (top_depth,
+    rise, area) are kept as they are."""
+    from dataclasses import replace
+
+    from scipy.spatial.transform import Rotation
+
+    R, t = Rotation.from_quat(rotation), np.asarray(translation, float)
+    return [replace(p, position=R.apply(p.position) + t, normal=R.apply(p.normal),
+                    rotation=(R * Rotation.from_quat(p.orientation())).as_quat())
+            for p in picks]
 
 
 def check_intrinsics(K, shape: tuple[int, int] | None = None) -> np.ndarray:
