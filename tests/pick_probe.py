@@ -2,7 +2,8 @@
 
     python pick_probe.py OUT.npz NAMESPACE COUNT TIMEOUT_S picks|labels [INFO_TOPIC WIDTH HEIGHT]
 
-Subscribes to NAMESPACE/segmenter/{picks,markers,labels,pick_confidence}, /diagnostics and (for the inputs)
+Subscribes to NAMESPACE/segmenter/{picks,markers,labels,pick_confidence} (the confidences keyed
+by the stamp their label names), /diagnostics and (for the inputs)
 NAMESPACE/camera/depth/image_rect_raw. With INFO_TOPIC it also publishes a CameraInfo of WIDTH x
 HEIGHT there twice a second (to feed the segmenter a wrong one). Stops once COUNT frames have
 their depth, labels and picks (`picks`) or their depth and labels (`labels`), or at TIMEOUT_S;

@@ -48,7 +48,7 @@ def results(got) -> list:
 
 
 def test_lifecycle_is_driven_from_another_process(tmp):
-    """autostart false: unconfigured with no model; configure loads it (inactive: no work);
+    """With autostart false: unconfigured with no model; configure loads it (inactive: no work);
     activate subscribes; deactivate stops the work; cleanup unloads; configure + activate
     again serve as before."""
     frames = bag_frames(tmp, "cylinder_sim")
