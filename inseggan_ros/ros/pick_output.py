@@ -35,7 +35,7 @@ class PickOutput:
     def __init__(self, node, cfg, use_tf: bool):
         from inseggan_ros.runtime.picks import PickConfig
 
-        self.node, self.cfg = node, PickConfig(**cfg)
+        self.node, self.cfg = node, PickConfig(**cfg, areas=False)  # no area is published
         self.pub_picks = node.create_lifecycle_publisher(PoseArray, "~/picks", 5)
         self.pub_markers = node.create_lifecycle_publisher(MarkerArray, "~/markers", 5)
         self.pub_confidence = node.create_lifecycle_publisher(Float32MultiArray,
@@ -54,6 +54,19 @@ class PickOutput:
             self.tf_listener = TransformListener(self.tf_buffer, node)
         self.sub_info = None
         self.camera_info = None  # the latest CameraInfo message
+        self._warm_up()
+
+    def _warm_up(self) -> None:
+        """Picks of a synthetic frame, so that the first real one does not pay the imports
+        (scipy's, half a second)."""
+        from inseggan_ros.runtime.picks import compute_picks
+
+        depth = np.full((40, 40), 0.5)
+        labels = np.zeros(depth.shape, np.uint8)
+        depth[5:20, 5:20], labels[5:20, 5:20] = 0.48, 1
+        labels[15:30, 15:30] = 2
+        compute_picks(depth, labels, np.array([[50.0, 0, 20], [0, 50.0, 20], [0, 0, 1]]), None,
+                      self.cfg)[0].orientation()
 
     def destroy(self) -> None:
         for pub in (self.pub_picks, self.pub_markers, self.pub_confidence):

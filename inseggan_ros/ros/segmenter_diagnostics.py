@@ -34,8 +34,10 @@ def _timing_values(node) -> dict:
               "total_p50_ms": _pct(node.total_ms, 50), "total_p99_ms": _pct(node.total_ms, 99),
               "inference_p50_ms": _pct(node.inference_ms, 50),
               "conversion_p50_ms": _pct(node.conversion_ms, 50)}
+    values["total_mean_ms"] = f"{np.mean(node.total_ms):.2f}" if node.total_ms else "nan"
     for stage, times in node.stage_ms.items():
         values[f"stage_{stage}_p50_ms"] = _pct(times, 50)
+        values[f"stage_{stage}_mean_ms"] = f"{np.mean(times):.2f}" if times else "nan"
     return values
 
 

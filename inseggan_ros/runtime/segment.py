@@ -178,11 +178,14 @@ class Segmenter:
     `superpixel_thread`: what depends on the input frame alone, the centre votes' net and the
     frame's two graph segmentations (`superpixels.frame_segments`), is made in a second thread
     while the encoder and the renders run in this one; the labels are the same, the frame's
-    latency lower where a second core is free (docs/benchmarks.md)."""
+    latency lower where a second core is free (docs/benchmarks.md).
+
+    `traced`: the encoder and the centre-vote net run as traced TorchScript graphs
+    (`traced.Traced`): the same numbers, sooner (the segmenter node turns it on)."""
 
     def __init__(self, G, E, model_cfg, prep_cfg, tau: float, device: str = "cpu",
                  inference: InferenceConfig = InferenceConfig(), label_head=None,
-                 superpixel_thread: bool = False, centre_net=None):
+                 superpixel_thread: bool = False, centre_net=None, traced: bool = False):
         self.G, self.E = G.eval().to(device), E.eval().to(device)
         self.label_head = label_head.eval().to(device) if label_head is not None else None
         self.centre_net = centre_net.eval().to(device) if centre_net is not None else None
@@ -193,6 +196,7 @@ class Segmenter:
         self.stored_settings = True  # `inference` is what the model ships (see from_checkpoint)
         self._cast = {}  # (net's name, precision) -> its copy that computes in it
         self.superpixel_thread = superpixel_thread
+        self.traced = traced
         self._pool = None  # made on first use
 
     def check(self, cfg: InferenceConfig) -> None:
@@ -223,13 +227,21 @@ class Segmenter:
 
     def _in_precision(self, name: str, cast, precision: str):
         """The net `self.<name>` in `precision` (`settings.PRECISIONS`): itself in float32 (or
-        None), else `cast(net, dtype)`, made once per precision."""
+        None), else `cast(net, dtype)`, made once per precision; with `traced`, called through
+        its traced graphs."""
         net, precision = getattr(self, name), self.resolve_precision(precision)
-        if precision == "float32" or net is None:
+        if net is None:
             return net
-        if (name, precision) not in self._cast:
+        if precision != "float32" and (name, precision) not in self._cast:
             self._cast[name, precision] = cast(net, getattr(torch, precision)).eval()
-        return self._cast[name, precision]
+        net = net if precision == "float32" else self._cast[name, precision]
+        if not self.traced:
+            return net
+        if (name, precision, "traced") not in self._cast:
+            from inseggan_ros.runtime.traced import Traced
+
+            self._cast[name, precision, "traced"] = Traced(net)
+        return self._cast[name, precision, "traced"]
 
     def encoder(self, precision: str = "float32"):
         """The encoder in `precision` (`settings.PRECISIONS`)."""
@@ -384,8 +396,11 @@ class Segmenter:
             centres = self._in_second_thread(self.centre_votes, x, fg,
                                              self.model_cfg.n_instances, cfg.centre_precision)
         if self.superpixel_thread and (cfg.vote_scale > 0 or cfg.split_scale > 0):
-            segments = self._in_second_thread(lambda: [frame_segments(
-                prep.x, prep.fg, (cfg.vote_scale, cfg.split_scale))])
+            def make():
+                return [frame_segments(prep.x, prep.fg, (cfg.vote_scale, cfg.split_scale))]
+            # beside the centre votes, the segments take this thread, while the encoder
+            # would wait for the votes anyway; else the second thread's, beside the encoder
+            segments = make() if centres is not None else self._in_second_thread(make)
         stages = {} if timings is None else timings
         out = self.segment_batch(x, fg=fg, tau=tau, settings=cfg, segments=segments,
                                  centres=centres, timings=stages)
