@@ -396,11 +396,8 @@ class Segmenter:
             centres = self._in_second_thread(self.centre_votes, x, fg,
                                              self.model_cfg.n_instances, cfg.centre_precision)
         if self.superpixel_thread and (cfg.vote_scale > 0 or cfg.split_scale > 0):
-            def make():
-                return [frame_segments(prep.x, prep.fg, (cfg.vote_scale, cfg.split_scale))]
-            # beside the centre votes, the segments take this thread, while the encoder
-            # would wait for the votes anyway; else the second thread's, beside the encoder
-            segments = make() if centres is not None else self._in_second_thread(make)
+            segments = self._in_second_thread(lambda: [frame_segments(
+                prep.x, prep.fg, (cfg.vote_scale, cfg.split_scale))])
         stages = {} if timings is None else timings
         out = self.segment_batch(x, fg=fg, tau=tau, settings=cfg, segments=segments,
                                  centres=centres, timings=stages)
