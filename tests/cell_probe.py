@@ -10,7 +10,9 @@ STEPS.json is a list of steps, run in order:
     ["segment_next"]               ~/segment_next -> [success, message]
     ["publish", FRAMES.npz, RATE]  from now on, publish FRAMES.npz's `depth` (N, H, W) uint16
                                    frames in turn as 16UC1 at RATE Hz, stamped with the wall
-                                   clock, each with a CameraInfo of `K` (3 x 3) beside it
+                                   clock, each with a CameraInfo of `K` (3 x 3) beside it;
+                                   a fourth item "compressedDepth": as image_transport's
+                                   compressedDepth (PNG) on <depth topic>/compressedDepth
     ["labels", COUNT, TIMEOUT]     wait until COUNT label images have arrived in this step
     ["idle", SECONDS]              keep spinning (and publishing)
 Writes OUT.json: "steps", per step {step, t0_ns, t1_ns (wall clock), result, labels: the stamps
@@ -30,13 +32,25 @@ from geometry_msgs.msg import PoseArray
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState, GetState
 from rclpy.qos import qos_profile_sensor_data
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Float32MultiArray
 from std_srvs.srv import SetBool, Trigger
 
 
 def stamp_ns(header) -> int:
     return header.stamp.sec * 1_000_000_000 + header.stamp.nanosec
+
+
+def compressed_depth(header, depth):
+    """image_transport's compressedDepth of a 16UC1 image: its 12-byte ConfigHeader (format PNG
+    = 1, two unused depth parameters), then the PNG."""
+    import struct
+
+    import cv2
+
+    ok, png = cv2.imencode(".png", depth.astype(np.uint16))
+    return CompressedImage(header=header, format="16UC1; compressedDepth png",
+                           data=struct.pack("<iff", 1, 0.0, 0.0) + png.tobytes())
 
 
 class Probe:
@@ -57,7 +71,11 @@ class Probe:
                                               qos_profile_sensor_data)
         self.pub_info = self.node.create_publisher(CameraInfo, f"{ns}/camera/depth/camera_info",
                                                    qos_profile_sensor_data)
+        self.pub_compressed = self.node.create_publisher(
+            CompressedImage, f"{ns}/camera/depth/image_rect_raw/compressedDepth",
+            qos_profile_sensor_data)
         self.frames, self.K, self.period, self.next_send, self.sent = None, None, 0.0, 0.0, 0
+        self.compressed = False
 
     def _on_labels(self, m):
         lab = np.frombuffer(bytes(m.data), np.uint8)
@@ -83,7 +101,10 @@ class Probe:
         info = CameraInfo(header=m.header, width=m.width, height=m.height)
         info.k = [float(v) for v in self.K.reshape(-1)]
         self.pub_info.publish(info)
-        self.pub.publish(m)
+        if self.compressed:
+            self.pub_compressed.publish(compressed_depth(m.header, depth))
+        else:
+            self.pub.publish(m)
         self.sent += 1
         self.next_send = time.monotonic() + self.period
 
@@ -119,6 +140,7 @@ class Probe:
         if kind == "publish":
             data = np.load(step[1])
             self.frames, self.K, self.period = data["depth"], data["K"], 1.0 / float(step[2])
+            self.compressed = len(step) > 3 and step[3] == "compressedDepth"
             return True
         if kind == "labels":
             start = len(self.labels)

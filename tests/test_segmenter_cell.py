@@ -257,3 +257,28 @@ def test_target_transform_parameters_are_checked():
     assert got[2].startswith("rejected: target_translation and target_rotation need "
                              "target_frame"), got[2]
     assert got[3:] == ["ok", "ok", "ok", "ok"], got
+
+
+def test_compressed_depth_input(tmp):
+    """input_transport compressedDepth: where image_codec has the decoder, frames sent as
+    image_transport's compressedDepth on <depth topic>/compressedDepth are segmented; where it
+    has none, the node stops at start with one line saying so."""
+    from inseggan_ros.core import image_codec
+
+    if getattr(image_codec, "decode_compressed_depth", None) is None:
+        seg = start_segmenter("/cell_cd", "input_transport:=compressedDepth")
+        rc = seg.wait(timeout=90)
+        err = seg.stderr.read()
+        assert rc == 1 and "Traceback" not in err, err
+        assert "segmenter: error: parameter input_transport=compressedDepth: this build's " \
+               "image_codec has no compressedDepth decoder; valid: raw" in err, err
+        return
+    frames = bag_frames(tmp, "cylinder_sim")
+    seg = start_segmenter("/cell_cd", "input_transport:=compressedDepth")
+    try:
+        got = drive(tmp, "/cell_cd", [["publish", str(frames), 5.0, "compressedDepth"],
+                                      ["labels", 3, 60.0], ["segment_next"]])
+    finally:
+        assert stop(seg) == 0
+    assert all(n >= 3 for _, n in got["labels"]), got["labels"]
+    assert results(got)[2][0] is True and results(got)[2][1].startswith("instances ")

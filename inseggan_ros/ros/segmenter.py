@@ -517,7 +517,9 @@ class SegmenterNode(LifecycleNode):
             else:
                 depth = _decode_compressed(msg)
         except image_codec.ImageFormatError as e:
-            raise FrameError("encoding" if "encoding" in str(e) else "size", str(e)) from None
+            reason = "encoding" if "encoding" in str(e) else \
+                "size" if isinstance(msg, Image) else "compressed"
+            raise FrameError(reason, str(e)) from None
         self._check_shape(depth.shape)
         t1 = time.perf_counter()
         want_recon = self.p["publish_reconstruction"] and \
