@@ -11,6 +11,8 @@ Launch arguments, name: meaning
     namespace          the node's namespace (its relative topics move with it)
     depth_topic        the depth image (default: camera/depth/image_rect_raw, relative)
     camera_info_topic  its CameraInfo ('' = the camera_info beside depth_topic)
+    autostart          true (default): the node configures and activates itself; false: it
+                       waits, unconfigured, for a lifecycle manager's ~/change_state
 """
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
@@ -30,6 +32,10 @@ def _segmenter(context, *args, **kwargs):
     parameters = [value("params_file")]
     if value("model"):
         parameters.append({"model_path": value("model")})
+    autostart = value("autostart").lower()
+    if autostart not in ("true", "false"):
+        raise ValueError(f"autostart:={autostart} invalid; valid: true, false")
+    parameters.append({"autostart": autostart == "true"})
     return [Node(package="inseggan_ros", executable="segmenter", name="segmenter",
                  namespace=value("namespace"), parameters=parameters, remappings=remappings,
                  output="screen", emulate_tty=True)]
@@ -49,5 +55,8 @@ def generate_launch_description():
                               description="depth image topic"),
         DeclareLaunchArgument("camera_info_topic", default_value="",
                               description="CameraInfo topic ('' = beside depth_topic)"),
+        DeclareLaunchArgument("autostart", default_value="true",
+                              description="true: configure and activate at start; false: wait "
+                                          "for ~/change_state (a lifecycle manager)"),
         OpaqueFunction(function=_segmenter),
     ])

@@ -2,7 +2,8 @@
 
     python pick_probe.py OUT.npz NAMESPACE COUNT TIMEOUT_S picks|labels [INFO_TOPIC WIDTH HEIGHT]
 
-Subscribes to NAMESPACE/segmenter/{picks,markers,labels}, /diagnostics and (for the inputs)
+Subscribes to NAMESPACE/segmenter/{picks,markers,labels,pick_confidence} (the confidences keyed
+by the stamp their label names), /diagnostics and (for the inputs)
 NAMESPACE/camera/depth/image_rect_raw. With INFO_TOPIC it also publishes a CameraInfo of WIDTH x
 HEIGHT there twice a second (to feed the segmenter a wrong one). Stops once COUNT frames have
 their depth, labels and picks (`picks`) or their depth and labels (`labels`), or at TIMEOUT_S;
@@ -17,6 +18,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import Float32MultiArray
 from visualization_msgs.msg import MarkerArray
 
 from seg_probe import key, raw
@@ -27,7 +29,7 @@ def main():
     wait_for, wrong = sys.argv[5], sys.argv[6:9]
     rclpy.init()
     node = rclpy.create_node("pick_probe")
-    got = {k: {} for k in ("picks", "markers", "labels", "depth")}
+    got = {k: {} for k in ("picks", "markers", "labels", "depth", "confidence")}
     statuses = {}
 
     def store(kind):
@@ -41,6 +43,14 @@ def main():
     node.create_subscription(PoseArray, f"{ns}/segmenter/picks", store("picks"), 10)
     node.create_subscription(MarkerArray, f"{ns}/segmenter/markers", store("markers"), 10)
     node.create_subscription(Image, f"{ns}/segmenter/labels", store("labels"), 10)
+
+    def on_confidence(m):  # no header: its dimension's label is the stamp, '<sec>.<nanosec>'
+        sec, nanosec = m.layout.dim[0].label.split(".")
+        got["confidence"][int(sec) * 10**9 + int(nanosec)] = {"label": m.layout.dim[0].label,
+                                                              "values": list(m.data)}
+
+    node.create_subscription(Float32MultiArray, f"{ns}/segmenter/pick_confidence",
+                             on_confidence, 10)
     node.create_subscription(Image, f"{ns}/camera/depth/image_rect_raw", store("depth"),
                              qos_profile_sensor_data)
     node.create_subscription(DiagnosticArray, "/diagnostics", on_diag, 10)
@@ -95,6 +105,7 @@ def main():
                                       else "" for s in stamps]),
              depth_frame_id=np.array([got["depth"][s].header.frame_id for s in stamps]),
              markers=obj([markers(s) for s in stamps]),
+             confidence=obj([got["confidence"].get(s) for s in stamps]),
              picks_total=np.int64(len(got["picks"])),
              diagnostics=np.array(diag, dtype=object))
     node.destroy_node()

@@ -75,7 +75,7 @@ def test_segmenter_launch_arguments_and_topic_names():
 
     tree = _tree("segmenter.launch.py")
     assert _declared_arguments(tree) == {"model", "params_file", "namespace", "depth_topic",
-                                         "camera_info_topic"}
+                                         "camera_info_topic", "autostart"}
     consts = {t.id: ast.literal_eval(n.value) for n in tree.body if isinstance(n, ast.Assign)
               for t in n.targets}
     # the remaps start from the names the node really subscribes to
@@ -118,7 +118,7 @@ def test_parameters_the_launch_files_set_are_declared_by_the_nodes():
     for name in LAUNCH_FILES:
         for exe, names in _node_parameters(_tree(name)).items():
             wanted.setdefault(exe, set()).update(names)
-    assert wanted == {"segmenter": {"model_path"},
+    assert wanted == {"segmenter": {"model_path", "autostart"},
                       "bin_replay": {"source", "object", "bag_path", "loop", "rate"}}
     for exe, names in wanted.items():
         ns = f"/launch_{exe}"

@@ -2,11 +2,16 @@
 
 The segmenter runs as its own process (as `ros2 run` starts it), on the shipped model; this
 process publishes 1280 x 720 16UC1 depth frames (simulated RealSense-like bins with sensor noise,
-a few distinct frames in turn) at 30 Hz for 60 s, and subscribes to the labels. Printed:
-  * node latency, message received -> labels published, measured inside the node (p50, p99 over
-    every frame; the node's own /diagnostics), with the share spent in inference alone and in
-    message conversion;
-  * end-to-end latency as a subscriber sees it (depth stamp -> labels received);
+a few distinct frames in turn) with their CameraInfo at 30 Hz for 60 s, and subscribes to the
+labels and the picks (so that the node computes them). Printed:
+  * node latency, message received -> labels published and -> everything published, picks
+    included, measured inside the node (p50, p99 over every frame; the node's own
+    /diagnostics), and each stage's median and share of the mean: preprocess (message decode,
+    bin region, floor, the model's input), network (encoder, renders, centre votes), labels
+    (from the renders to the full-resolution label image), picks (computed and published),
+    publish (labels and the other images);
+  * end-to-end latency as a subscriber sees it (depth stamp -> labels received, -> picks
+    received);
   * frames sent, received by the node, answered, and dropped (keep-last 1: a frame that arrives
     while the node is busy replaces the waiting one);
   * the node's peak resident memory (VmHWM of its process);
@@ -85,7 +90,33 @@ def in_process_reference(frames, model_path: str, params: dict, repeats: int = 3
             "settings": cfg}
 
 
-def main(argv=None) -> int:
+def camera_info(width: int, height: int):
+    """The simulated camera's CameraInfo (the picks need it)."""
+    from inseggan_ros.io.bags import CameraInfo as CameraInfoData
+    from inseggan_ros.ros import conversions
+    from inseggan_ros.sim.camera import get_camera
+
+    cam = get_camera("realsense_d435", width, height)
+    return conversions.camera_info_to_msg(CameraInfoData(
+        width=width, height=height, K=cam.K, D=np.zeros(5), distortion_model="plumb_bob"))
+
+
+STAGES = ("preprocess", "network", "labels", "picks", "publish")
+
+
+def print_stages(last: dict) -> None:
+    """Each stage's median and share of the mean total, as the node's /diagnostics give them
+    (a node without them: a line saying so)."""
+    if f"stage_{STAGES[0]}_mean_ms" not in last:
+        print("    stages: not reported by this node")
+        return
+    total = float(last["total_mean_ms"])
+    parts = [f"{s} {last[f'stage_{s}_p50_ms']} ms "
+             f"({100 * float(last[f'stage_{s}_mean_ms']) / total:.0f} %)" for s in STAGES]
+    print(f"    stages, p50 (share of the mean {total:.2f} ms): " + ", ".join(parts))
+
+
+def parse_args(argv):
     ap = argparse.ArgumentParser(prog="inseggan-bench-node", description=__doc__.split("\n")[0])
     ap.add_argument("--seconds", type=float, default=60.0)
     ap.add_argument("--rate", type=float, default=30.0)
@@ -105,112 +136,98 @@ def main(argv=None) -> int:
     ap.add_argument("--node-sets-profile", action="store_true",
                     help="start the segmenter without the profile variable, as a plain "
                          "`ros2 run` does, so that it must set the profile itself")
-    args = ap.parse_args(argv)
-    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    try:
-        params = settings.read_params_file(args.params_file) if args.params_file else {}
-    except ValueError as e:
-        print(f"bench-node: error: {e}", file=sys.stderr)
-        return 2
-    flags = settings.from_flags(args)
-    params.update(flags)
-    from inseggan_ros.ros.dds import PROFILE_VARIABLES, use_large_frames_profile
+    return ap.parse_args(argv)
 
-    if args.default_transport:
-        for v in PROFILE_VARIABLES:
-            os.environ.pop(v, None)
-    profile = "built-in transports" if args.default_transport else use_large_frames_profile()
-    print(f"bench-node: Fast DDS profile: {profile}", flush=True)
 
-    import rclpy
-    from diagnostic_msgs.msg import DiagnosticArray
-    from rclpy.qos import qos_profile_sensor_data
-    from sensor_msgs.msg import Image
+def segmenter_command(args, flags: dict) -> list[str]:
+    """The segmenter's command line: the parameters file first (rcl gathers every -p into one
+    set at the first -p's place, so a file after any -p would override even the -p flags that
+    follow it), then the model, the settings' flags, the second thread."""
+    from tools.demo import _executable
 
-    from tools.demo import _executable, _stop
-    from inseggan_ros.ros import conversions
-
-    print(f"bench-node: simulating {args.distinct_frames} {args.width}x{args.height} frames ...",
-          flush=True)
-    from inseggan_ros.core.checkpoint import CheckpointError
-    from inseggan_ros.ros.segmenter import ConfigError
-
-    frames = simulated_frames(args.distinct_frames, args.width, args.height)
-    try:
-        ref = in_process_reference(frames, args.model, params,
-                                   superpixel_thread=args.superpixel_thread == "on")
-    except (CheckpointError, ConfigError, ValueError) as e:
-        print(f"bench-node: error: {e}", file=sys.stderr)
-        return 2
-
-    rclpy.init()
-    node = rclpy.create_node("bench_node")
-    pub = node.create_publisher(Image, "camera/depth/image_rect_raw", qos_profile_sensor_data)
-    answered: dict[int, int] = {}
-    diags = []
-    node.create_subscription(
-        Image, "segmenter/labels",
-        lambda m: answered.__setitem__(conversions.stamp_to_ns(m.header.stamp), time.time_ns()), 10)
-    node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
-    # the parameters file first: rcl gathers every -p into one set at the first -p's place, so
-    # a file after any -p would override even the -p flags that follow it
     model = ["--params-file", str(args.params_file)] if args.params_file else []
     if args.model:
         model += ["-p", f"model_path:={args.model}"]
     for name, value in flags.items():
         model += ["-p", f"{name}:={value}"]
     model += ["-p", f"superpixel_thread:={str(args.superpixel_thread == 'on').lower()}"]
-    env = None
-    if args.node_sets_profile:
-        env = {k: v for k, v in os.environ.items() if k not in PROFILE_VARIABLES}
-    seg = subprocess.Popen([_executable("segmenter"), "--ros-args", *model,
-                            "-p", "latency_window:=100000"],
-                           stderr=subprocess.PIPE, text=True, env=env)
+    return [_executable("segmenter"), "--ros-args", *model, "-p", "latency_window:=100000"]
+
+
+def stream(args, frames, command: list[str], env) -> dict:
+    """Start the segmenter, wait until it answers, publish the frames (with their CameraInfo)
+    at args.rate for args.seconds -> {sent, answered, picked (stamp -> received time), first
+    and last diagnostics, peak_mb}; {"error": ...} when the node never answered."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from geometry_msgs.msg import PoseArray
+    from rclpy.qos import qos_profile_sensor_data
+    from sensor_msgs.msg import CameraInfo, Image
+
+    from inseggan_ros.ros import conversions
+    from tools.demo import _stop
+
+    rclpy.init()
+    node = rclpy.create_node("bench_node")
+    pub = node.create_publisher(Image, "camera/depth/image_rect_raw", qos_profile_sensor_data)
+    pub_info = node.create_publisher(CameraInfo, "camera/depth/camera_info",
+                                     qos_profile_sensor_data)
+    info = camera_info(args.width, args.height)
+    out = {"answered": {}, "picked": {}, "sent": [], "base": None}
+    diags = []
+    for kind, msg_type, topic in (("answered", Image, "segmenter/labels"),
+                                  ("picked", PoseArray, "segmenter/picks")):
+        node.create_subscription(msg_type, topic, lambda m, d=out[kind]: d.__setitem__(
+            conversions.stamp_to_ns(m.header.stamp), time.time_ns()), 10)
+    node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
+    seg = subprocess.Popen(command, stderr=subprocess.PIPE, text=True, env=env)
     msgs = [conversions.numpy_to_image(f, "16UC1") for f in frames]
-    sent: list[int] = []
+
+    def send(m):
+        m.header.stamp = info.header.stamp = node.get_clock().now().to_msg()
+        pub_info.publish(info)
+        pub.publish(m)
+
+    def spin_until(t):
+        while time.monotonic() < t:
+            rclpy.spin_once(node, timeout_sec=max(0.0, min(0.05, t - time.monotonic())))
+
     try:
         t0 = time.monotonic()  # wait until the segmenter answers a frame: it is connected
-        while not answered and time.monotonic() - t0 < 60 and seg.poll() is None:
-            m = msgs[0]
-            m.header.stamp = node.get_clock().now().to_msg()
-            pub.publish(m)
-            end = time.monotonic() + 0.5
-            while time.monotonic() < end:
-                rclpy.spin_once(node, timeout_sec=0.05)
-        if not answered:
-            print("bench-node: error: the segmenter did not answer\n" + seg.stderr.read(),
-                  file=sys.stderr)
-            return 1
-        answered.clear()
+        while not out["answered"] and time.monotonic() - t0 < 60 and seg.poll() is None:
+            send(msgs[0])
+            spin_until(time.monotonic() + 0.5)
+        if not out["answered"]:
+            return {"error": "the segmenter did not answer\n" + seg.stderr.read()}
+        out["answered"].clear()
+        out["picked"].clear()
         diags.clear()
-        base = None
         print(f"bench-node: publishing at {args.rate:.0f} Hz for {args.seconds:.0f} s", flush=True)
-        start = time.monotonic()
-        k = 0
+        start, k = time.monotonic(), 0
         while time.monotonic() - start < args.seconds:
-            due = start + k / args.rate
-            while time.monotonic() < due:
-                rclpy.spin_once(node, timeout_sec=max(0.0, min(0.005, due - time.monotonic())))
-            m = msgs[k % len(msgs)]
-            m.header.stamp = node.get_clock().now().to_msg()
-            pub.publish(m)
-            sent.append(conversions.stamp_to_ns(m.header.stamp))
+            spin_until(start + k / args.rate)
+            send(msgs[k % len(msgs)])
+            out["sent"].append(conversions.stamp_to_ns(msgs[k % len(msgs)].header.stamp))
             k += 1
-            if base is None and diags:
-                base = {kv.key: kv.value for kv in diags[-1].status[0].values}
-        end = time.monotonic() + 3.0  # the last answers and a final diagnostics message
-        while time.monotonic() < end:
-            rclpy.spin_once(node, timeout_sec=0.05)
-        peak_mb = _vm_hwm_mb(seg.pid)
+            if out["base"] is None and diags:
+                out["base"] = {kv.key: kv.value for kv in diags[-1].status[0].values}
+        spin_until(time.monotonic() + 3.0)  # the last answers and a final diagnostics message
+        out["peak_mb"] = _vm_hwm_mb(seg.pid)
     finally:
         _stop(seg)
         node.destroy_node()
         rclpy.try_shutdown()
+    out["last"] = {kv.key: kv.value for kv in diags[-1].status[0].values} if diags else {}
+    return out
 
-    last = {kv.key: kv.value for kv in diags[-1].status[0].values} if diags else {}
+
+def report(args, ref: dict, profile, run: dict) -> None:
+    last, sent, answered, picked = run["last"], run["sent"], run["answered"], run["picked"]
     got = [s for s in sent if s in answered]
     e2e = np.array([(answered[s] - s) / 1e6 for s in got])
-    received = int(last.get("frames_received", 0)) - int((base or {}).get("frames_received", 0))
+    e2e_picks = np.array([(picked[s] - s) / 1e6 for s in sent if s in picked])
+    received = int(last.get("frames_received", 0)) - \
+        int((run["base"] or {}).get("frames_received", 0))
     cfg = ref["settings"]
     print(f"\nsegmenter node, {args.width}x{args.height} 16UC1 at {args.rate:.0f} Hz for "
           f"{args.seconds:.0f} s (model {last.get('model', '?')}, {last.get('device', '?')}, "
@@ -229,18 +246,63 @@ def main(argv=None) -> int:
           f" dropped {len(sent) - len(got)} (node received about {received}; skipped "
           f"{last.get('frames_skipped', '?')})")
     print(f"  node latency (received -> labels published): p50 {last.get('latency_p50_ms')} ms, "
-          f"p99 {last.get('latency_p99_ms')} ms   [target p50 <= 20, p99 <= 40]")
+          f"p99 {last.get('latency_p99_ms')} ms")
+    print(f"  node latency (received -> labels, images and picks published): p50 "
+          f"{last.get('total_p50_ms', '?')} ms, p99 {last.get('total_p99_ms', '?')} ms   "
+          "[target p50 <= 10, picks included]")
     print(f"    of which inference p50 {last.get('inference_p50_ms')} ms, message conversion "
           f"p50 {last.get('conversion_p50_ms')} ms")
-    if len(e2e):
-        print(f"  end to end (stamp -> labels received here): p50 {np.percentile(e2e, 50):.1f} ms,"
-              f" p99 {np.percentile(e2e, 99):.1f} ms")
-    print(f"  peak resident memory of the node: {peak_mb:.0f} MB   [target <= 1024]")
+    print_stages(last)
+    for name, values in (("labels", e2e), ("picks", e2e_picks)):
+        if len(values):
+            print(f"  end to end (stamp -> {name} received here): p50 "
+                  f"{np.percentile(values, 50):.1f} ms, p99 {np.percentile(values, 99):.1f} ms "
+                  f"({len(values)} frames)")
+    print(f"  peak resident memory of the node: {run['peak_mb']:.0f} MB   [target <= 1024]")
     print(f"  in this process, same frames, one torch thread (second thread "
           f"{args.superpixel_thread}): preprocessing + inference p50 "
           f"{np.percentile(ref['inference_ms'], 50):.1f} ms (p99 "
           f"{np.percentile(ref['inference_ms'], 99):.1f}); conversion p50 "
           f"{np.percentile(ref['conversion_ms'], 50):.2f} ms")
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    try:
+        params = settings.read_params_file(args.params_file) if args.params_file else {}
+    except ValueError as e:
+        print(f"bench-node: error: {e}", file=sys.stderr)
+        return 2
+    flags = settings.from_flags(args)
+    params.update(flags)
+    from inseggan_ros.ros.dds import PROFILE_VARIABLES, use_large_frames_profile
+
+    if args.default_transport:
+        for v in PROFILE_VARIABLES:
+            os.environ.pop(v, None)
+    profile = "built-in transports" if args.default_transport else use_large_frames_profile()
+    print(f"bench-node: Fast DDS profile: {profile}", flush=True)
+    print(f"bench-node: simulating {args.distinct_frames} {args.width}x{args.height} frames ...",
+          flush=True)
+    from inseggan_ros.core.checkpoint import CheckpointError
+    from inseggan_ros.ros.segmenter import ConfigError
+
+    frames = simulated_frames(args.distinct_frames, args.width, args.height)
+    try:
+        ref = in_process_reference(frames, args.model, params,
+                                   superpixel_thread=args.superpixel_thread == "on")
+    except (CheckpointError, ConfigError, ValueError) as e:
+        print(f"bench-node: error: {e}", file=sys.stderr)
+        return 2
+    env = None
+    if args.node_sets_profile:
+        env = {k: v for k, v in os.environ.items() if k not in PROFILE_VARIABLES}
+    run = stream(args, frames, segmenter_command(args, flags), env)
+    if "error" in run:
+        print(f"bench-node: error: {run['error']}", file=sys.stderr)
+        return 1
+    report(args, ref, profile, run)
     return 0
 
 

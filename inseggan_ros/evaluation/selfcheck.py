@@ -24,9 +24,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-# An instance counts as visible in a frame when it labels at least this many of the 64 x 64
-# pixels (a cylinder seen end-on covers about 20; a few stray pixels are not an object).
-MIN_VISIBLE_PIXELS = 8
+# the per-frame measures are the runtime's, which the segmenter node computes on every frame
+from inseggan_ros.runtime.bin_check import MIN_VISIBLE_PIXELS, label_free
+
 # Scores within this much of the best IoU count as a tie (`tau_from_frames`).
 TIE = 0.002
 
@@ -84,12 +84,6 @@ def calibrate(seg, x: np.ndarray, fg: np.ndarray, chunk: int = 50) -> tuple[floa
     return tau_from_frames(renders, torch.from_numpy(np.asarray(fg)), seg.prep_cfg)
 
 
-def visible_counts(labels: np.ndarray, n: int) -> np.ndarray:
-    """(N, H, W) labels 0..n -> (N,) instances labelling at least MIN_VISIBLE_PIXELS pixels."""
-    per = np.stack([(labels == k).reshape(len(labels), -1).sum(1) for k in range(1, n + 1)], 1)
-    return (per >= MIN_VISIBLE_PIXELS).sum(1)
-
-
 @torch.no_grad()
 def segment_frames(seg, x: np.ndarray, fg: np.ndarray) -> dict:
     """Every frame through `seg.segment_batch` on its own, as the segmenter node runs ->
@@ -112,18 +106,12 @@ def measure(seg, x: np.ndarray, fg: np.ndarray, out: dict | None = None) -> dict
     """The label-free measures of `seg` on frames x (N, 1, 64, 64) with foreground fg (N, 64,
     64) (`out`: their `segment_frames`, if already run) -> a dict for the model card."""
     out = segment_frames(seg, x, fg) if out is None else out
-    x0, fg = np.asarray(x)[:, 0], np.asarray(fg, bool)
+    x0 = np.asarray(x)[:, 0]
     n = seg.model_cfg.n_instances
-    drawn = out["renders"].max(1) >= seg.tau
-    err = np.abs(out["reconstruction"] - x0)
-    counts = visible_counts(out["labels"], n)
-    fg_pixels, drawn_pixels = int(fg.sum()), int(drawn.sum())
+    m = label_free(x0, fg, out["renders"], out["reconstruction"], out["labels"], seg.tau)
+    counts = m.pop("visible")
     return {
-        "frames": int(len(x0)), "n_instances": n, "tau": float(seg.tau),
-        "recon_l1": float(err.mean()),
-        "recon_l1_foreground": float(err[fg].mean()) if fg_pixels else None,
-        "coverage": float((drawn & fg).sum() / fg_pixels) if fg_pixels else None,
-        "spill": float((drawn & ~fg).sum() / drawn_pixels) if drawn_pixels else None,
+        "frames": int(len(x0)), "n_instances": n, "tau": float(seg.tau), **m,
         "count_equals_n": float((counts == n).mean()),
         "count_mean": float(counts.mean()), "count_std": float(counts.std()),
         "count_histogram": {str(k): int((counts == k).sum()) for k in range(n + 1)},

@@ -25,6 +25,14 @@ class ConfigError(Exception):
     """A parameter value the node cannot start with."""
 
 
+class FrameError(ValueError):
+    """A frame (or its picks) the node skips; `reason` is the diagnostics counter it goes to."""
+
+    def __init__(self, reason: str, message: str):
+        super().__init__(message)
+        self.reason = reason
+
+
 def descriptor(desc: str, read_only: bool = False, float_range=None, int_range=None,
                type_=None) -> ParameterDescriptor:
     """A ParameterDescriptor; the ranges are (from, to), enforced by rclpy on every set."""

@@ -49,6 +49,9 @@ class PickConfig:
     free_rise: float = 0.003  # metres: a neighbour higher than this where they meet covers it
     min_pixels: int = 20  # fewer valid pixels: no pick
     normal_window: float = 0.004  # metres: side of the window for per-pixel normals (area)
+    # compute each pick's visible `area` (NaN when off): the per-pixel normals it needs are
+    # about 40 % of the picks' time; the segmenter node publishes no area and turns it off
+    areas: bool = True
 
     def __post_init__(self):
         for name, ok, valid in (
@@ -65,18 +68,24 @@ class Pick:
     instance: int  # its label, 1..n
     position: np.ndarray  # (3,) metres, camera frame: the visible surface's centroid
     normal: np.ndarray  # (3,) unit, toward the camera (normal . position < 0)
-    area: float  # m^2 of visible surface
+    area: float  # m^2 of visible surface (NaN where PickConfig.areas is off)
     occluded: float  # fraction hidden under other instances, 0..1 (the model's; 0 if unknown)
     rise: float  # metres the highest neighbour rises above it where they meet (-inf: none)
     free: bool  # rise <= PickConfig.free_rise: nothing on top of it
     top_depth: float  # metres: the depth of its highest part
     pixels: int  # valid pixels it was computed from
+    # quaternion (x, y, z, w) of its pose where it was moved to another frame
+    # (`transform_picks`); None: the camera's, from `normal`
+    rotation: np.ndarray | None = None
 
     def orientation(self) -> np.ndarray:
         """Quaternion (x, y, z, w) of a frame whose z axis is `normal` and whose x axis is the
-        camera's x axis projected onto the surface (the camera's y axis where x is normal)."""
+        camera's x axis projected onto the surface (the camera's y axis where x is normal);
+        in another frame (`transform_picks`) that same pose, expressed there."""
         from scipy.spatial.transform import Rotation
 
+        if self.rotation is not None:
+            return np.asarray(self.rotation, float)
         return Rotation.from_matrix(frame_from_normal(self.normal)).as_quat()
 
 
@@ -87,6 +96,47 @@ def frame_from_normal(normal: np.ndarray) -> np.ndarray:
     x = ref - z * (ref @ z)
     x /= np.linalg.norm(x)
     return np.column_stack([x, np.cross(z, x), z])
+
+
+# A target_rotation whose norm is further than this from 1 is refused (a typo, or the
+# components in another order); within it, it is normalised.
+QUATERNION_TOLERANCE = 1e-3
+
+
+def check_transform(translation, rotation) -> tuple[np.ndarray, np.ndarray]:
+    """A camera-to-target transform as parameters give it -> (translation (3,), unit quaternion
+    (x, y, z, w)); raises ValueError naming what is wrong and what is valid."""
+    t, q = np.asarray(list(translation), float), np.asarray(list(rotation), float)
+    if t.shape != (3,) or not np.isfinite(t).all():
+        raise ValueError(f"target_translation {list(translation)} invalid; valid: [x, y, z], "
+                         "three finite numbers (metres: the camera frame's origin in the "
+                         "target frame)")
+    if q.shape != (4,) or not np.isfinite(q).all():
+        raise ValueError(f"target_rotation {list(rotation)} invalid; valid: [x, y, z, w], four "
+                         "finite numbers (a unit quaternion: the camera frame's orientation in "
+                         "the target frame)")
+    norm = float(np.linalg.norm(q))
+    if abs(norm - 1.0) > QUATERNION_TOLERANCE:
+        raise ValueError(f"target_rotation {list(rotation)} invalid: its norm is {norm:.6f}; "
+                         f"valid: a unit quaternion [x, y, z, w] (norm within "
+                         f"{QUATERNION_TOLERANCE:g} of 1; [0, 0, 0, 1] = no rotation)")
+    return t, q / norm
+
+
+def transform_picks(picks: list[Pick], translation, rotation) -> list[Pick]:
+    """`picks` (camera frame) in a target frame where the camera frame has the pose
+    (`translation` (3,) metres, `rotation` unit quaternion (x, y, z, w)), as tf gives the
+    transform target <- camera: a point p moves to R p + t, the normal to R n, the pick's pose
+    (`Pick.orientation`) to R times it. The measures that belong to the camera (top_depth,
+    rise, area) are kept as they are."""
+    from dataclasses import replace
+
+    from scipy.spatial.transform import Rotation
+
+    R, t = Rotation.from_quat(rotation), np.asarray(translation, float)
+    return [replace(p, position=R.apply(p.position) + t, normal=R.apply(p.normal),
+                    rotation=(R * Rotation.from_quat(p.orientation())).as_quat())
+            for p in picks]
 
 
 def check_intrinsics(K, shape: tuple[int, int] | None = None) -> np.ndarray:
@@ -177,26 +227,41 @@ def pixel_areas(depth: np.ndarray, normals: np.ndarray, x: np.ndarray, y: np.nda
     return depth ** 2 / (K[0, 0] * K[1, 1]) / (np.maximum(cos, MIN_COS) * ray_norm)
 
 
-def rises(depth: np.ndarray, labels: np.ndarray, instances) -> dict[int, float]:
+def rises(depth: np.ndarray, labels: np.ndarray, instances, boxes=None) -> dict[int, float]:
     """{label: how far (m) its highest neighbour rises above it where the two meet}: per pair
     of touching instances, the median depth of this one's pixels within BAND pixels of the
     other minus the other's within BAND pixels of this one; the largest over its neighbours
-    (-inf without any)."""
+    (-inf without any). `boxes` ({label: (rows, cols) slices of its pixels}, as
+    compute_picks finds them): only the region where two instances' boxes, grown by BAND,
+    overlap is read for a pair (the same numbers as over the whole image)."""
     import cv2
 
     kernel = np.ones((2 * BAND + 1, 2 * BAND + 1), np.uint8)
     valid = depth > 0
-    masks = {k: valid & (labels == k) for k in instances}
-    near = {k: cv2.dilate(m.view(np.uint8), kernel).view(bool) for k, m in masks.items()}
+    H, W = labels.shape
+    if boxes is None:
+        boxes = {k: (slice(0, H), slice(0, W)) for k in instances}
+    grown = {k: (max(0, b[0].start - BAND), min(H, b[0].stop + BAND),
+                 max(0, b[1].start - BAND), min(W, b[1].stop + BAND)) for k, b in boxes.items()}
     out = {}
     for k in instances:
         out[k] = -np.inf
         for j in instances:
-            if j == k:
+            a, b = grown[k], grown[j]
+            r0, r1, c0, c1 = max(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), min(a[3], b[3])
+            if j == k or r0 >= r1 or c0 >= c1:
                 continue
-            mine, theirs = masks[k] & near[j], masks[j] & near[k]
+            # the pair's region, grown by BAND more: a dilation there sees every pixel it needs
+            R0, R1, C0, C1 = max(0, r0 - BAND), min(H, r1 + BAND), max(0, c0 - BAND), \
+                min(W, c1 + BAND)
+            win = (slice(R0, R1), slice(C0, C1))
+            mk, mj = valid[win] & (labels[win] == k), valid[win] & (labels[win] == j)
+            near_j = cv2.dilate(mj.view(np.uint8), kernel).view(bool)
+            near_k = cv2.dilate(mk.view(np.uint8), kernel).view(bool)
+            mine, theirs = mk & near_j, mj & near_k
             if mine.sum() >= 3 and theirs.sum() >= 3:
-                out[k] = max(out[k], float(np.median(depth[mine]) - np.median(depth[theirs])))
+                d = depth[win]
+                out[k] = max(out[k], float(np.median(d[mine]) - np.median(d[theirs])))
     return out
 
 
@@ -236,48 +301,92 @@ def compute_picks(depth_m: np.ndarray, labels: np.ndarray, K, occluded=None,
 
     `depth_m` (H, W) metres, 0 or NaN = no reading; `K` the 3 x 3 intrinsics of this image
     size; `occluded[k]` the hidden fraction of instance k + 1 (None: every instance counts as
-    free, and only the height orders them). Raises ValueError when the sizes do not match."""
-    depth = np.nan_to_num(np.asarray(depth_m, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
-    labels = np.asarray(labels)
-    if depth.ndim != 2 or labels.shape != depth.shape:
-        raise ValueError(f"depth {depth.shape} and labels {labels.shape} must be the same "
+    free, and only the height orders them). Raises ValueError when the sizes do not match.
+
+    Only the labelled pixels' bounding box is read, and each instance's own box within it:
+    the cost follows the parts' size, not the frame's (the same numbers as over the whole
+    frame)."""
+    depth_in, labels = np.asarray(depth_m), np.asarray(labels)
+    if depth_in.ndim != 2 or labels.shape != depth_in.shape:
+        raise ValueError(f"depth {depth_in.shape} and labels {labels.shape} must be the same "
                          "(H, W) size")
     K = check_intrinsics(K)
-    valid = (depth > 0) & (labels > 0)
-    if not valid.any():
+    box = _box(labels > 0)
+    if box is None:
         return []
-    rows, cols = np.nonzero(valid.any(1))[0], np.nonzero(valid.any(0))[0]
-    box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))  # all the instances
-    depth, labels, valid = depth[box], labels[box], valid[box]
-    x, y = rays(K, depth.shape, (rows[0], cols[0]))
-    P = np.stack([x * depth, y * depth, depth], -1)
-    instances = [int(k) for k in np.unique(labels[valid])
-                 if (valid & (labels == k)).sum() >= cfg.min_pixels]
-    rise = rises(depth, labels, instances)
-    picks = []
-    for k in instances:
-        mask = valid & (labels == k)
-        rows, cols = np.nonzero(mask)
-        r0, r1, c0, c1 = rows.min(), rows.max() + 1, cols.min(), cols.max() + 1
-        # the instance's box, every s-th pixel of it where it is large (a pixel then stands
-        # for s x s): the cost stays bounded at any resolution
-        s = max(1, int(np.sqrt(len(rows) / MAX_PIXELS)) + 1) if len(rows) > MAX_PIXELS else 1
-        sub = (slice(r0, r1, s), slice(c0, c1, s))
-        m, Pk, dk = mask[sub], P[sub], depth[sub]
+    origin = (box[0].start, box[1].start)
+    labels = labels[box]
+    depth = np.asarray(depth_in[box], np.float64)  # a copy: only the box is converted
+    bad = ~np.isfinite(depth)
+    if bad.any():
+        depth[bad] = 0.0  # NaN and +-inf: no reading
+    valid = (depth > 0) & (labels > 0)
+    counts = np.bincount(labels[valid].ravel(), minlength=2)
+    instances = [int(k) for k in np.flatnonzero(counts) if k > 0 and counts[k] >= cfg.min_pixels]
+    if not instances:
+        return []
+    boxes = _instance_boxes(labels, instances)
+    rise = rises(depth, labels, instances, boxes)
+    picks = [_pick(k, depth, labels, valid, boxes[k], origin, K, occluded, rise[k], cfg)
+             for k in instances]
+    return sorted(picks, key=lambda p: (not p.free, p.top_depth))
+
+
+def _box(mask: np.ndarray):
+    """(rows, cols) slices of the bounding box of `mask`'s True pixels, or None."""
+    rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+    if rows.size == 0:
+        return None
+    return slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1)
+
+
+def _instance_boxes(labels: np.ndarray, instances) -> dict:
+    """{label: (rows, cols) slices of its pixels' bounding box} (scipy.ndimage.find_objects)."""
+    from scipy import ndimage
+
+    found = ndimage.find_objects(labels, max_label=max(instances))
+    return {k: found[k - 1] for k in instances}
+
+
+def _pick(k: int, depth, labels, valid, box, origin, K, occluded, rise: float,
+          cfg: PickConfig) -> Pick:
+    """The pick of instance `k` from its pixels (labels == k within `box` of the frame's
+    labelled region, whose top-left pixel is `origin` (row, column) of the frame)."""
+    mask = valid[box] & (labels[box] == k)
+    rows, cols = np.nonzero(mask)
+    pixels = len(rows)
+    r0, r1, c0, c1 = rows.min(), rows.max() + 1, cols.min(), cols.max() + 1
+    # the instance's box, every s-th pixel of it where it is large (a pixel then stands for
+    # s x s): the cost stays bounded at any resolution
+    s = max(1, int(np.sqrt(pixels / MAX_PIXELS)) + 1) if pixels > MAX_PIXELS else 1
+    sub = (slice(r0, r1, s), slice(c0, c1, s))
+    top = (origin[0] + box[0].start + r0, origin[1] + box[1].start + c0)
+    m, dk = mask[sub], depth[box][sub]
+    area = np.nan
+    if cfg.areas:
+        x, y = rays(K, (r1 - r0, c1 - c0), top)
+        x, y = x[::s, ::s], y[::s, ::s]
+        Pk = np.stack([x * dk, y * dk, dk], -1)
         z = float(np.median(dk[m]))
         window = max(3, int(round(cfg.normal_window * K[0, 0] / z / s)) | 1)
         normals = pixel_normals(Pk, m, window)
-        area = pixel_areas(dk, normals, x[sub], y[sub], K)[m] * (s * s)
-        pts = Pk[m]
-        footprint = dk[m] ** 2  # / (fx fy), the same for all: left out of the weights
-        centroid = (pts * footprint[:, None]).sum(0) / footprint.sum()
-        dist = np.linalg.norm(pts - centroid, axis=1)
-        near = dist <= dist.min() + cfg.normal_radius
-        if near.sum() < 3:
-            near = dist <= np.sort(dist)[2]
-        normal = plane_normal(pts[near], footprint[near])
-        occ = 0.0 if occluded is None or k > len(occluded) else float(occluded[k - 1])
-        picks.append(Pick(instance=k, position=centroid, normal=normal, area=float(area.sum()),
-                          occluded=occ, rise=rise[k], free=rise[k] <= cfg.free_rise,
-                          top_depth=float(np.percentile(dk[m], 5)), pixels=int(mask.sum())))
-    return sorted(picks, key=lambda p: (not p.free, p.top_depth))
+        area = float((pixel_areas(dk, normals, x, y, K)[m] * (s * s)).sum())
+        pts, zs = Pk[m], dk[m]
+    else:  # the same points, from the instance's pixels alone (`rays`' arithmetic)
+        mr, mc = np.nonzero(m)
+        v, u = (top[0] + mr * s).astype(np.float64), (top[1] + mc * s).astype(np.float64)
+        y = (v - K[1, 2]) / K[1, 1]
+        x = (u - K[0, 2] - K[0, 1] * y) / K[0, 0]
+        zs = dk[mr, mc]
+        pts = np.stack([x * zs, y * zs, zs], 1)
+    footprint = zs ** 2  # / (fx fy), the same for all: left out of the weights
+    centroid = (pts * footprint[:, None]).sum(0) / footprint.sum()
+    dist = np.linalg.norm(pts - centroid, axis=1)
+    near = dist <= dist.min() + cfg.normal_radius
+    if near.sum() < 3:
+        near = dist <= np.sort(dist)[2]
+    normal = plane_normal(pts[near], footprint[near])
+    occ = 0.0 if occluded is None or k > len(occluded) else float(occluded[k - 1])
+    return Pick(instance=k, position=centroid, normal=normal, area=area,
+                occluded=occ, rise=rise, free=rise <= cfg.free_rise,
+                top_depth=float(np.percentile(zs, 5)), pixels=pixels)

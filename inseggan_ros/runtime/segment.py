@@ -15,6 +15,7 @@ give the scores and the reconstruction.
 """
 from __future__ import annotations
 
+import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -159,6 +160,8 @@ class Segmentation:
     roi: tuple[int, int, int, int]  # the bin region used (x0, y0, x1, y1)
     floor_depth: float  # metres
     renders64: np.ndarray | None = None  # (n, 64, 64) each instance rendered alone, [-1, 1]
+    fg64: np.ndarray | None = None  # (64, 64) bool, the model input's foreground
+    reconstruction64: np.ndarray | None = None  # (64, 64) the renders z-buffered, [-1, 1]
 
     @property
     def masks(self) -> np.ndarray:
@@ -177,11 +180,14 @@ class Segmenter:
     `superpixel_thread`: what depends on the input frame alone, the centre votes' net and the
     frame's two graph segmentations (`superpixels.frame_segments`), is made in a second thread
     while the encoder and the renders run in this one; the labels are the same, the frame's
-    latency lower where a second core is free (docs/benchmarks.md)."""
+    latency lower where a second core is free (docs/benchmarks.md).
+
+    `traced`: the encoder and the centre-vote net run as traced TorchScript graphs
+    (`traced.Traced`): the same numbers, sooner (the segmenter node turns it on)."""
 
     def __init__(self, G, E, model_cfg, prep_cfg, tau: float, device: str = "cpu",
                  inference: InferenceConfig = InferenceConfig(), label_head=None,
-                 superpixel_thread: bool = False, centre_net=None):
+                 superpixel_thread: bool = False, centre_net=None, traced: bool = False):
         self.G, self.E = G.eval().to(device), E.eval().to(device)
         self.label_head = label_head.eval().to(device) if label_head is not None else None
         self.centre_net = centre_net.eval().to(device) if centre_net is not None else None
@@ -192,6 +198,7 @@ class Segmenter:
         self.stored_settings = True  # `inference` is what the model ships (see from_checkpoint)
         self._cast = {}  # (net's name, precision) -> its copy that computes in it
         self.superpixel_thread = superpixel_thread
+        self.traced = traced
         self._pool = None  # made on first use
 
     def check(self, cfg: InferenceConfig) -> None:
@@ -222,13 +229,21 @@ class Segmenter:
 
     def _in_precision(self, name: str, cast, precision: str):
         """The net `self.<name>` in `precision` (`settings.PRECISIONS`): itself in float32 (or
-        None), else `cast(net, dtype)`, made once per precision."""
+        None), else `cast(net, dtype)`, made once per precision; with `traced`, called through
+        its traced graphs."""
         net, precision = getattr(self, name), self.resolve_precision(precision)
-        if precision == "float32" or net is None:
+        if net is None:
             return net
-        if (name, precision) not in self._cast:
+        if precision != "float32" and (name, precision) not in self._cast:
             self._cast[name, precision] = cast(net, getattr(torch, precision)).eval()
-        return self._cast[name, precision]
+        net = net if precision == "float32" else self._cast[name, precision]
+        if not self.traced:
+            return net
+        if (name, precision, "traced") not in self._cast:
+            from inseggan_ros.runtime.traced import Traced
+
+            self._cast[name, precision, "traced"] = Traced(net)
+        return self._cast[name, precision, "traced"]
 
     def encoder(self, precision: str = "float32"):
         """The encoder in `precision` (`settings.PRECISIONS`)."""
@@ -300,23 +315,26 @@ class Segmenter:
     @torch.no_grad()
     def segment_batch(self, x: np.ndarray | torch.Tensor, fg=None, tau: float | None = None,
                       settings: InferenceConfig | None = None, segments=None,
-                      centres=None) -> dict:
+                      centres=None, timings: dict | None = None) -> dict:
         """(B, 1, 64, 64) prepared inputs -> labels (B, 64, 64) uint8, renders, scores, recon.
         `tau` and `settings` override the model's. `segments`: each frame's
         `superpixels.frame_segments` made beforehand (a list, or a Future of one); `centres`:
         the centre votes made beforehand (`centre_votes`, its labels or with `founding` its
-        pair, or a Future of them)."""
+        pair, or a Future of them). `timings`: a dict that gets the seconds the networks took
+        ("network")."""
         cfg = self.inference if settings is None else settings
         x = torch.as_tensor(x, dtype=torch.float32, device=self.device)
-        out = self.model_labels(x, fg, tau, cfg, centres)
+        out = self.model_labels(x, fg, tau, cfg, centres, timings)
         return self.vote_and_split(out, x, cfg, tau, segments)
 
     @torch.no_grad()
     def model_labels(self, x: np.ndarray | torch.Tensor, fg=None, tau: float | None = None,
-                     settings: InferenceConfig | None = None, centres=None) -> dict:
+                     settings: InferenceConfig | None = None, centres=None,
+                     timings: dict | None = None) -> dict:
         """`segment_batch` up to the vote: the z-buffered (or label head's, or centre votes')
-        labels, smoothed, with the renders and the reconstruction. `centres`: as
+        labels, smoothed, with the renders and the reconstruction. `centres`, `timings`: as
         `segment_batch`'s."""
+        t0 = time.perf_counter()
         tau = self.tau if tau is None else float(tau)
         cfg = self.inference if settings is None else settings
         x = torch.as_tensor(x, dtype=torch.float32, device=self.device)
@@ -324,19 +342,22 @@ class Segmenter:
                     refine_steps=cfg.refine_steps, hypotheses=cfg.refine_hypotheses,
                     keep=cfg.refine_keep, swaps=cfg.refine_swaps)
         fg_t = (x[:, 0] > -1 + 1e-4) if fg is None else torch.as_tensor(fg, device=self.device)
-        labels = labels_from_renders(out["renders"], tau, fg_t)
-        if cfg.label_head == "on":
-            if self.label_head is None:
-                raise ValueError("label_head on: this model has no label head; valid: off")
-            labels = head_labels(self.label_head, x, out["renders"], labels, fg_t)
+        n = out["renders"].shape[1]
         if cfg.centre_votes == "on":
-            n = out["renders"].shape[1]
             if isinstance(centres, Future):
                 centres = centres.result()
             if centres is None:
                 centres = self.centre_votes(x, fg_t, n, cfg.centre_precision, founding=True)
             if isinstance(centres, tuple):  # where a missed part may be split off: `founding`
                 centres, out["founding"] = centres
+        if timings is not None:
+            timings["network"] = time.perf_counter() - t0
+        labels = labels_from_renders(out["renders"], tau, fg_t)
+        if cfg.label_head == "on":
+            if self.label_head is None:
+                raise ValueError("label_head on: this model has no label head; valid: off")
+            labels = head_labels(self.label_head, x, out["renders"], labels, fg_t)
+        if cfg.centre_votes == "on":
             labels = match_to_renders(centres, labels, n)
         out["labels"] = smooth_labels(labels, x, out["renders"].shape[1], cfg.smooth)
         return out
@@ -365,20 +386,24 @@ class Segmenter:
         return {**out, "labels": labels, "scores": scores}
 
     def __call__(self, depth_m: np.ndarray, prep_cfg=None, tau: float | None = None,
-                 reconstruction: bool = True, settings: InferenceConfig | None = None
-                 ) -> Segmentation:
+                 reconstruction: bool = True, settings: InferenceConfig | None = None,
+                 timings: dict | None = None) -> Segmentation:
         """One depth frame (H, W) in metres -> Segmentation at the input's resolution.
 
         `prep_cfg` overrides the model's preprocessing (bin region, floor, min_height: the
         node's parameters); `tau` the calibrated threshold; `reconstruction=False` skips the
-        metric re-rendered depth; `settings` the model's refinement and smoothing.
+        metric re-rendered depth; `settings` the model's refinement and smoothing;
+        `timings`, a dict, gets the seconds each stage took: "preprocess" (the frame to the
+        model's input), "network" (the networks), "labels" (the rest).
         Raises ValueError on a bad frame."""
+        t0 = time.perf_counter()
         prep_cfg = self.prep_cfg if prep_cfg is None else prep_cfg
         cfg = self.inference if settings is None else settings
         if prep_cfg.max_height != self.prep_cfg.max_height or prep_cfg.size != self.prep_cfg.size:
             raise ValueError("max_height and size are fixed by the model: "
                              f"{self.prep_cfg.max_height} m, {self.prep_cfg.size} px")
         prep = prepare(depth_m, prep_cfg)
+        t1 = time.perf_counter()
         x, fg = prep.x[None, None], prep.fg[None]
         segments = centres = None
         if self.superpixel_thread and cfg.centre_votes == "on":  # first: needed first
@@ -388,8 +413,9 @@ class Segmenter:
         if self.superpixel_thread and (cfg.vote_scale > 0 or cfg.split_scale > 0):
             segments = self._in_second_thread(lambda: [frame_segments(
                 prep.x, prep.fg, (cfg.vote_scale, cfg.split_scale))])
+        stages = {} if timings is None else timings
         out = self.segment_batch(x, fg=fg, tau=tau, settings=cfg, segments=segments,
-                                 centres=centres)
+                                 centres=centres, timings=stages)
         labels64 = out["labels"][0].cpu().numpy()
         labels = extend_labels(labels_to_full(labels64, prep), depth_m, prep, prep_cfg)
         labels = smooth_full(labels, depth_m, prep.floor_depth, prep_cfg.max_height,
@@ -398,8 +424,11 @@ class Segmenter:
         if reconstruction:
             recon64 = out["reconstruction"][0, 0].cpu().numpy()
             recon = self._heights_to_depth(recon64, prep, prep.shape)
+        stages["preprocess"] = t1 - t0
+        stages["labels"] = time.perf_counter() - t1 - stages["network"]
         return Segmentation(labels, recon, out["scores"][0].cpu().numpy(), labels64, prep.x,
-                            prep.roi, prep.floor_depth, out["renders"][0].cpu().numpy())
+                            prep.roi, prep.floor_depth, out["renders"][0].cpu().numpy(),
+                            prep.fg, out["reconstruction"][0, 0].cpu().numpy())
 
     def _in_second_thread(self, fn, *args) -> Future:
         """`fn(*args)` in the one second thread (`superpixel_thread`), in order of submission."""
