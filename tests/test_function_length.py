@@ -1,24 +1,12 @@
 """No function or method of the package or its tools is longer than 80 lines (from its `def`
-to its last line), so that each reads as one step of the procedure it implements.
-
-ALLOWED lists the functions still being split elsewhere; each is checked apart (expected to
-fail until it is split) and must still exist, so that an entry left behind is seen."""
+to its last line), so that each reads as one step of the procedure it implements."""
 import ast
 from pathlib import Path
 
-import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 FOLDERS = ("inseggan_ros", "tools")
 MAX_LINES = 80
-ALLOWED = (
-    "inseggan_ros/cli/main.py::build_parser",
-    "inseggan_ros/cli/main.py::cmd_loop",
-    "inseggan_ros/learning/loop.py::run",
-    "inseggan_ros/evaluation/modelcard.py::export_model",
-    "inseggan_ros/evaluation/modelcard.py::export_label_free",
-    "tools/bench_node.py::main",
-)
 
 
 def _functions(tree: ast.AST, prefix: str = ""):
@@ -50,21 +38,6 @@ def function_lengths() -> dict:
 
 
 def test_no_function_is_longer_than_80_lines():
-    long = {k: n for k, n in function_lengths().items() if n > MAX_LINES and k not in ALLOWED}
+    long = {k: n for k, n in function_lengths().items() if n > MAX_LINES}
     assert not long, f"functions over {MAX_LINES} lines (split them into named steps):\n" + \
         "\n".join(f"  {k}: {n} lines" for k, n in sorted(long.items(), key=lambda kv: -kv[1]))
-
-
-def test_the_allowed_functions_still_exist():
-    lengths = function_lengths()
-    gone = [k for k in ALLOWED if k not in lengths]
-    assert not gone, f"ALLOWED names functions that are gone (remove them from it): {gone}"
-
-
-@pytest.mark.xfail(strict=False, reason="being split by other engineers (cli/, learning/loop.py "
-                   "run, evaluation/modelcard.py export_model and export_label_free, "
-                   "tools/bench_node.py main); once it passes, remove it from ALLOWED")
-@pytest.mark.parametrize("function", ALLOWED)
-def test_an_allowed_function_is_split_too(function):
-    lines = function_lengths().get(function, 0)
-    assert lines <= MAX_LINES, f"{function}: {lines} lines"
