@@ -42,15 +42,16 @@ def stamp_ns(header) -> int:
 
 
 def compressed_depth(header, depth):
-    """image_transport's compressedDepth of a 16UC1 image: its 12-byte ConfigHeader (format PNG
-    = 1, two unused depth parameters), then the PNG."""
+    """image_transport's compressedDepth of a 16UC1 image: its 12-byte ConfigHeader (compression
+    format INV_DEPTH = 0, as compressed_depth_image_transport writes it for every encoding; two
+    depth parameters, unused for 16 bits), then the PNG."""
     import struct
 
     import cv2
 
     ok, png = cv2.imencode(".png", depth.astype(np.uint16))
     return CompressedImage(header=header, format="16UC1; compressedDepth png",
-                           data=struct.pack("<iff", 1, 0.0, 0.0) + png.tobytes())
+                           data=struct.pack("<iff", 0, 0.0, 0.0) + png.tobytes())
 
 
 class Probe:

@@ -81,17 +81,6 @@ STAGES = ("preprocess", "network", "labels", "picks", "publish")
 COMPRESSED_SUFFIX = "/compressedDepth"
 
 
-def _decode_compressed(msg) -> np.ndarray:
-    """A sensor_msgs/CompressedImage of image_transport's compressedDepth format -> float32
-    metres, through image_codec.decode_compressed_depth where this build has it."""
-    decode = getattr(image_codec, "decode_compressed_depth", None)
-    if decode is None:
-        raise ConfigError("input_transport compressedDepth: this build's image_codec has no "
-                          "compressedDepth decoder; valid: raw")
-    depth, encoding = decode(msg.format, bytes(msg.data))
-    return image_codec.depth_to_metres(depth, encoding)
-
-
 @dataclass
 class _Request:
     """A ~/segment_next call waiting for the next frame that arrives after it."""
@@ -178,10 +167,6 @@ class SegmenterNode(LifecycleNode):
         if transport not in ("raw", "compressedDepth"):
             raise ConfigError(f"parameter input_transport={transport!r} invalid; valid: raw, "
                               "compressedDepth")
-        if transport == "compressedDepth" and \
-                getattr(image_codec, "decode_compressed_depth", None) is None:
-            raise ConfigError("parameter input_transport=compressedDepth: this build's "
-                              "image_codec has no compressedDepth decoder; valid: raw")
         import torch
 
         torch.set_num_threads(self.get_parameter("threads").value)
@@ -515,7 +500,7 @@ class SegmenterNode(LifecycleNode):
             if isinstance(msg, Image):
                 depth = conversions.depth_to_metres(msg)
             else:
-                depth = _decode_compressed(msg)
+                depth = conversions.depth_to_metres(msg)
         except image_codec.ImageFormatError as e:
             reason = "encoding" if "encoding" in str(e) else \
                 "size" if isinstance(msg, Image) else "compressed"
