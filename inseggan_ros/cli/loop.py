@@ -214,6 +214,14 @@ def resolve(args) -> dict:
     opts = recipes.merge(args, defaults, given, together=FRAMES)
     if opts["out"] is None:
         raise ValueError("no run directory: give --out DIR (or `out:` in the recipe)")
+    # the defaults that depend on other options, written out so that the recipe is whole
+    if opts["bag"] is not None and opts["noise"] is None:
+        opts["noise"] = "auto"
+    if opts["model"] is None and opts["train_minutes"] is None and \
+            opts["train_iterations"] is None:
+        from inseggan_ros.learning.loop import SHAPE_ITERATIONS
+
+        opts["train_iterations"] = SHAPE_ITERATIONS
     return opts
 
 
