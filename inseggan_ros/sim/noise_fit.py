@@ -41,7 +41,7 @@ def _quantum(stack: np.ndarray) -> float:
         return 0.0
     step = np.diff(vals)
     q = float(np.median(step[step > 1e-7])) if np.any(step > 1e-7) else 0.0
-    if q <= 0 or q < 1e-5:
+    if q < 1e-5:
         return 0.0
     on_grid = np.abs(vals / q - np.round(vals / q)) < 0.05
     return round(q, 6) if on_grid.mean() > 0.95 else 0.0
