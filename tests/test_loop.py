@@ -394,3 +394,66 @@ def test_the_loop_fits_a_convex_template_from_the_rod_and_piles_and_ships_it(tmp
         bad = run_cli(*base, *extra, "--out", tmp / "bad")
         assert bad.returncode == 2 and said in bad.stderr, (extra, bad.stderr)
         assert not (tmp / "bad").exists()
+
+
+def test_the_default_loop_chooses_the_template_family_then_piles_it_once(tmp):
+    """The default loop (no encoder stage, no template named): the scale rounds run before any
+    pile (they read the model, never the piles), then every template family is made from the
+    rod, piled and scored against the recording's frames (`family.choose`), and the piles of
+    the kept one are simulated once; the card lists every candidate and the one kept. Started
+    again, nothing is redone; --families rod is the rod's own piles, as before the choice."""
+    out = tmp / "loop"
+    args = ["loop", "--model", MODEL, "--bag", REPO / "bags" / "wooden_block_realsense",
+            "--instances", "4", "--out", out, "--scenes", "12", "--val-scenes", "4",
+            "--centre-iterations", "8", "--size-rounds", "1", "--family-piles", "6",
+            "--family-iterations", "4", "--workers", "2", "--quiet"]
+    p = run_cli(*args, check=True, timeout=900)
+    summary = json.loads((out / "summary.json").read_text())
+    assert list(summary["seconds"]) == ["scale1", "family", "simulate", "centres", "export"]
+    card = json.loads((out / "model" / "card.json").read_text())
+    fam = card["template_family"]
+    assert fam == summary["template_family"]
+    assert [r["family"] for r in fam["candidates"]] == \
+        ["rod", "box", "bars", "discs", "ring", "taper"]
+    scored = [r for r in fam["candidates"] if "skipped" not in r]
+    assert {"rod", "box", "bars"} <= {r["family"] for r in scored}
+    for r in scored:
+        assert r["pile_w1"] > 0 and r["recon_l1"] > 0 and r["seconds"] > 0
+        assert len(r["pile_w1_by_scale"]) == 4
+        assert r["score"] >= 2 - 1e-6  # each measure over its best: 1 + 1 at least
+    kept = min(scored, key=lambda r: r["score"])
+    assert fam["kept"] == kept["family"] and f"template family: {kept['family']}" in p.stdout
+    assert (out / "family" / "family.png").is_file()
+    # the piles: simulated once, of the kept template (the fitted convex one becomes the model;
+    # discs, a ring or a taper are the piles' part and the model stays the rod)
+    # at the scale whose piles looked most like the frames
+    choice = json.loads((out / "family" / "family.json").read_text())
+    assert choice["scale"] in (0.55, 0.7, 0.85, 1.0) and choice["scale"] == kept["scale"]
+    by_scale = kept["pile_w1_by_scale"]
+    assert kept["pile_w1"] == pytest.approx(min(by_scale.values()), abs=1e-5)
+    moved = kept["family"] != "rod" or kept["scale"] != 1.0
+    sim = out / "family" / "sim" if moved else out / "sim"
+    if not moved and summary["size_rounds"][0]["scale"] != 1:
+        sim = out / "size_round1" / "sim"
+    meta = json.loads((sim / "meta.json").read_text())
+    assert meta["scene"]["object"] == (choice["part"] if moved else choice["model"])
+    assert not (out / "size_round1" / "sim").exists() or not moved
+    shipped = checkpoint.load(out / "model" / "model.pt")
+    want = "convex" if kept["family"] in ("box", "bars") else "spheres"
+    assert shipped["model_config"]["renderer"] == want
+    recipe = yaml.safe_load((out / "recipe.yaml").read_text())
+    assert recipe["families"] == ["rod", "box", "bars", "discs", "ring", "taper"]
+    stamps = {f: f.stat().st_mtime_ns for f in (out / "family" / "family.json",
+                                                 sim / "meta.json")}
+    run_cli(*args, check=True, timeout=600)
+    assert {f: f.stat().st_mtime_ns for f in stamps} == stamps
+    # --families rod: no choice; a family beside a named template is refused
+    p = run_cli(*args[:-9], "--families", "rod", "--out", tmp / "rod", "--print-recipe",
+                check=True)
+    assert "families: [rod]" in p.stdout
+    bad = run_cli(*args[:5], "--out", tmp / "bad", "--families", "box,ring", "--convex-pieces",
+                  "1")
+    assert bad.returncode == 2 and "--families chooses the template" in bad.stderr, bad.stderr
+    bad = run_cli(*args[:5], "--out", tmp / "bad", "--families", "rod,cube")
+    assert bad.returncode == 2 and "'rod,cube' invalid" in bad.stderr, bad.stderr
+    assert not (tmp / "bad").exists()

@@ -207,3 +207,13 @@ def also_profiles(args, base) -> dict:
     each row of the card is what the node does with that file."""
     return {Path(f).stem: settings.apply(base, settings.read_params_file(f))
             for f in args.also_profile or []}
+
+
+def default_workers() -> int:
+    """Simulation processes by default: one per core this process may run on (at most 8).
+    Every pile is drawn from its own seed (`sim.dataset.scene_seed`), so the piles are the
+    same whatever the count; only the time differs."""
+    import os
+
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return max(1, min(8, cores or 1))

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from inseggan_ros.cli import common, recipes
 from inseggan_ros.evaluation.vote_scale import SCALES as VOTE_SCALES
+from inseggan_ros.learning.family import FAMILIES, FamilyConfig
 
 SUMMARY = "a recording to a model: learn the part's shape from the unlabelled frames, finish " \
           "the model on labelled simulated piles of it, ship it with a label-free card"
@@ -56,8 +57,9 @@ def _user_options(p) -> None:
     p.add_argument("--train-minutes", type=float, metavar="MIN",
                    help="the shape stage's budget in minutes (without --model; 600 iterations "
                         "when neither this nor --train-iterations is given)")
-    p.add_argument("--workers", type=int, default=1, metavar="N",
-                   help="simulation and self-labelling processes (1)")
+    p.add_argument("--workers", type=int, default=common.default_workers(), metavar="N",
+                   help="simulation and self-labelling processes (this machine's cores, "
+                        f"{common.default_workers()}; the piles do not depend on it)")
     p.add_argument("--recipe", metavar="FILE",
                    help="the options from a recipe file (YAML, the flags' names with "
                         "underscores; a run's OUT/recipe.yaml, or a shipped model's name: "
@@ -170,6 +172,28 @@ def _template_options(g) -> None:
                    help="--convex-pieces: side planes of each piece (4: a box)")
     g.add_argument("--convex-iterations", type=int, default=1500,
                    help="--convex-pieces: iterations of the fit (1500)")
+    g.add_argument("--families", type=_families, default=tuple(FAMILIES),
+                   help="the template families the loop chooses among, by how their piles "
+                        "and renders match the user's frames (comma-separated; default: all, "
+                        f"{','.join(FAMILIES)}; rod alone: no choice, the rod's own piles). "
+                        "Not with --convex-pieces, --match-piles or an encoder stage, which "
+                        "name the template or come before it")
+
+    g.add_argument("--family-piles", type=int, default=FamilyConfig.piles,
+                   help="--families: simulated piles of each candidate at each scale "
+                        f"({FamilyConfig.piles})")
+    g.add_argument("--family-iterations", type=int, default=FamilyConfig.fit_iterations,
+                   help="--families: iterations of the fitted candidates, box and bars "
+                        f"({FamilyConfig.fit_iterations})")
+
+
+def _families(text: str) -> tuple[str, ...]:
+    names = tuple(t.strip() for t in str(text).split(",") if t.strip())
+    bad = [n for n in names if n not in FAMILIES]
+    if not names or bad:
+        raise argparse.ArgumentTypeError(f"families {text!r} invalid; valid: a comma-separated "
+                                         f"list of {', '.join(FAMILIES)}")
+    return names
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
@@ -257,7 +281,27 @@ def loop_config(opts: dict):
     elif opts["convex_walls"] != 4 or opts["convex_iterations"] != 1500:
         raise ValueError("--convex-walls and --convex-iterations shape --convex-pieces' "
                          "template; valid: with --convex-pieces")
-    return cfg
+    return _with_family(cfg, opts)
+
+
+def _with_family(cfg, opts: dict):
+    """`cfg` with the family choice (`family.FamilyConfig`) where the options leave the
+    template to the loop: more than the rod among --families, no encoder stage, neither
+    --convex-pieces nor --match-piles. Families named beside those refused."""
+    from dataclasses import replace
+
+    families = tuple(opts["families"])
+    if families == ("rod",):
+        return cfg
+    named = cfg.convex is not None or cfg.match_piles is not None or cfg.iterations
+    if named and families != tuple(FAMILIES):
+        raise ValueError("--families chooses the template; valid: without --convex-pieces, "
+                         "--match-piles and --iterations, or --families rod")
+    if named:
+        return cfg
+    return replace(cfg, family=FamilyConfig(families=families, piles=opts["family_piles"],
+                                            fit_iterations=opts["family_iterations"],
+                                            workers=opts["workers"], seed=opts["seed"]))
 
 
 def train_config(opts: dict):
@@ -315,6 +359,13 @@ def report(summary: dict, out: Path, seconds: float) -> None:
               + (f", a nut with a hole x{best['hole']:g} as wide" if best.get("hole") else "")
               + (f", tapering to x{best['taper']:g}" if best.get("taper", 1) != 1 else "")
               + f" (heights' W1 {best['distance']:.4f}); {summary['match']['part']}")
+    if summary.get("template_family"):
+        fam = summary["template_family"]
+        print(f"template family: {fam['kept']} kept (piles at x{fam['scale']:g}) of "
+              + ", ".join(f"{r['family']} {r['score']:.2f}" if "score" in r
+                          else f"{r['family']} (not made)" for r in fam["candidates"])
+              + f" (piles' heights W1 / best + held-out reconstruction / best; "
+              f"{fam['seconds'] / 60:.1f} min); {out}/family/family.png")
     if "not_by_thickness" in summary["sizing"]:
         print(f"rod not resized to the frames' thickness: "
               f"{summary['sizing']['not_by_thickness']}")

@@ -56,6 +56,8 @@ resumes from its last checkpoint; the export writes its folder atomically):
      itself, none for a given model): the rod's scale chosen by how well it explains
      the user's frames (`sizing.choose_scale`; out/size_round<k>/scale.json); where it is not
      1, stages 1 and 2 again from the scaled model, into out/size_round<k>/sim and encoder;
+     without an encoder stage (`iterations` 0) the rounds come before stage 1, which then
+     simulates the last scale's piles once (the check never reads the piles);
   3. head (only with `head_iterations`): a label head (`label_head.py`) taught on the same
      piles to correct the z-buffer's labels; the model with it is out/head/model.pt;
   4. self (only with `self_frames`): the encoder fitted further to the model's own labels, at
@@ -89,6 +91,7 @@ from inseggan_ros.evaluation.evaluate import write_json
 from inseggan_ros.evaluation.vote_scale import SCALES as VOTE_SCALES
 from inseggan_ros.evaluation.verdict import verdict
 from inseggan_ros.runtime.model import build_models
+from inseggan_ros.learning.family import FamilyConfig  # noqa: F401 (LoopConfig's type)
 from inseggan_ros.learning.piles import (  # noqa: F401  (the loop's frames and piles)
     BagFrames, _as_list, _model_file, _same_view, pile_scene, pile_view)
 
@@ -158,6 +161,13 @@ class LoopConfig:
     # becomes a convex template fitted to the user's frames by reconstruction (`shapefit`,
     # `shape-fit`'s default start: a box), and the piles are of it: flat faces and sharp edges
     # (the wooden block: docs/experiments.md, 2026-11-26 night and 2026-12-04)
+    family: "FamilyConfig | None" = None  # stage 2c's candidates (None: no such stage): after
+    # the rod is sized, the template family whose piles look most like the user's frames and
+    # whose renders explain held-out frames best is kept (`family.choose`): the rod, a fitted
+    # box or two boxes (the model becomes that convex template), or discs, a ring or a taper
+    # (the model stays the rod, as with `match_piles`); the piles are of the kept one at the
+    # scale whose piles look most like the frames. Only without an
+    # encoder stage (`iterations` 0), for a rod, with neither `convex` nor `match_piles`
 
     def __post_init__(self):
         if self.self_frames < 0:
@@ -206,6 +216,12 @@ class LoopConfig:
         if self.convex is not None and self.match_piles is not None:
             raise ValueError("convex and match_piles both set: the piles are of one template, "
                              "the fitted convex one or the matched discs; valid: at most one")
+        if self.family is not None and (self.convex is not None or self.match_piles is not None
+                                        or self.iterations):
+            raise ValueError("family (the template family chosen by the frames) with convex, "
+                             "match_piles or an encoder stage: the template is named, or the "
+                             "piles come after the encoder; valid: family alone, with "
+                             "iterations 0")
         if not 0 < self.lr < 1:
             raise ValueError(f"lr {self.lr!r} invalid; valid: in (0, 1)")
         if not self.user_weight >= 0:
@@ -650,7 +666,7 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
     seconds: dict[str, float] = {}
     stages = tqdm(total=(2 if model is not None else 3) + bool(cfg.iterations)
                   + bool(cfg.head_iterations) + (cfg.match_piles is not None)
-                  + (cfg.convex is not None)
+                  + (cfg.convex is not None) + (cfg.family is not None)
                   + bool(cfg.self_frames) + bool(cfg.centre_iterations)
                   + (thickness != "off") + size_rounds,
                   desc="loop", unit="stage", disable=not progress,
@@ -666,12 +682,16 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
     camera = model_camera(file, state)  # its template's size: the model folder's card names it
 
     file, part = _template_stages(file, data, out, cfg, thickness, tick, progress)
-    sim, encoder = out / "sim", out / "encoder"
-    finished = _simulate_and_fit(file, data, meta, view, sim, encoder, cfg, seconds, "",
-                                 progress, part)
-    stages.update(1 + bool(cfg.iterations))
-    finished, sim, encoder, rounds = _size_rounds(finished, data, meta, view, out, cfg,
-                                                  size_rounds, tick, stages, progress)
+    if cfg.iterations:
+        sim, encoder = out / "sim", out / "encoder"
+        finished = _simulate_and_fit(file, data, meta, view, sim, encoder, cfg, seconds, "",
+                                     progress, part)
+        stages.update(1 + bool(cfg.iterations))
+        finished, sim, encoder, rounds = _size_rounds(finished, data, meta, view, out, cfg,
+                                                      size_rounds, tick, stages, progress)
+    else:
+        finished, sim, encoder, rounds = _scale_then_simulate(
+            file, data, meta, view, out, cfg, size_rounds, tick, stages, progress, part)
     finished = _finishing_stages(finished, sim, view, data, out, cfg, tick, progress)
     card = tick("export", _export_stage, finished, sim, view, data, cfg, out, camera, recipe)
     stages.close()
@@ -683,6 +703,8 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
                "card": str(out / "model" / "card.json"), "tau": card.get("tau"),
                "vote_scale": card.get("vote_scale"), "verdict": card["verdict"]}
     _summarise_templates(summary, out, planned, thickness, size_rounds, rounds, part)
+    if card.get("template_family"):
+        summary["template_family"] = card["template_family"]
     write_json(out / "summary.json", summary)
     return summary
 
@@ -769,6 +791,58 @@ def _size_rounds(finished: Path, data, meta, view: dict, out: Path, cfg: LoopCon
     return finished, sim, encoder, rounds
 
 
+def _scale_then_simulate(file: Path, data, meta, view: dict, out: Path, cfg: LoopConfig,
+                         size_rounds: int, tick, stages, progress: bool,
+                         part: Path | None) -> tuple:
+    """Stage 2b before stage 1, where there is no encoder stage (`iterations` 0): the scale
+    check reads the model's own encoder and template only, never the piles, so the rounds
+    choose their scales first and the piles are simulated once, of the last scale, into the
+    folder the rounds' order gives it (out/sim, or out/size_round<k>/sim for the last round
+    k that scaled: the same piles a run that simulated every round kept). -> as
+    `_size_rounds`."""
+    sim, rounds = out / "sim", []
+    for k in range(1, size_rounds + 1):
+        chosen = tick(f"scale{k}", scale_check, file, data, out / f"size_round{k}", cfg)
+        rounds.append(chosen)
+        if chosen["scale"] == 1.0:
+            break
+        file, sim = Path(chosen["start"]), out / f"size_round{k}" / "sim"
+    if cfg.family is not None and part is None and _renderer(file) == "spheres":
+        choice = tick("family", family_stage, file, data, meta, view, out / "family", cfg,
+                      progress)
+        if choice["kept"] != "rod" or choice["scale"] != 1.0:
+            sim = out / "family" / "sim"
+            if choice["kept"] in ("box", "bars"):  # a fitted convex template: the model
+                file = Path(choice["model"])
+            # the piles are of the kept candidate at its scale; the model stays the rod for
+            # discs, a ring, a taper (as with match_piles), and keeps its own size
+            part = Path(choice["part"])
+    finished = _simulate_and_fit(file, data, meta, view, sim, out / "encoder", cfg,
+                                 tick.seconds, "", progress, part)
+    stages.update(1)
+    return finished, sim, out / "encoder", rounds
+
+
+def _renderer(file: Path) -> str:
+    from inseggan_ros.core import checkpoint
+
+    return checkpoint.load(file)["model_config"].get("renderer", "spheres")
+
+
+def family_stage(file: Path, data, meta, view: dict, out: Path, cfg: LoopConfig,
+                 progress: bool = True) -> dict:
+    """Stage 2c: the template family, chosen among `cfg.family`'s candidates made from the rod
+    of `file` by how their piles and renders match the user's training frames (no label
+    read; `family.choose`) -> the choice (out/family.json). Resumes candidate by candidate."""
+    from inseggan_ros.core import checkpoint
+    from inseggan_ros.learning import family
+    from inseggan_ros.runtime.preprocess import PreprocessConfig
+
+    prep = PreprocessConfig.from_dict(checkpoint.load(file)["preprocess_config"])
+    frames = _user_frames(data, prep, "train", cfg.family.frames, progress)["x"]
+    return family.choose(file, frames, data, meta, view, out, cfg.family, progress)
+
+
 def _finishing_stages(finished: Path, sim: Path, view: dict, data, out: Path, cfg: LoopConfig,
                       tick, progress: bool) -> Path:
     """Stages 3 (head), 4 (self) and 4b (centres), those asked for -> the model to ship."""
@@ -794,6 +868,14 @@ def _export_stage(finished: Path, sim: Path, view: dict, data, cfg: LoopConfig, 
 
         piles = data_mod.load_sim_split(sim, "val", limit=100, **view)
     card = _export(finished, data, cfg, out / "model", piles, camera, recipe)
+    if cfg.family is not None and (out / "family" / "family.json").is_file():
+        chosen = json.loads((out / "family" / "family.json").read_text())
+        card["template_family"] = {  # each candidate's scores and time, the one kept
+            "kept": chosen["kept"], "scale": chosen["scale"], "seconds": chosen["seconds"],
+            "candidates": [{k: r[k] for k in ("family", "scale", "pile_w1", "pile_w1_by_scale",
+                                               "recon_l1", "score", "seconds", "skipped")
+                            if k in r}
+                           for r in chosen["rows"]]}
     card["verdict"] = verdict(card)  # the label-free judgement `inseggan ship` reads
     write_json(out / "model" / "card.json", card)
     return card

@@ -1,0 +1,252 @@
+"""The part's template family, chosen by the user's own frames: no label, a small budget.
+
+The shape stage learns a rod of spheres: a solid of revolution. Every shipped model of a part
+that is not one took a recipe naming its family (`--convex-pieces 1` for the block, discs for
+the bolt and the pin, a ring for the nut, a taper for the cone), chosen by someone who knew the
+part. Here the loop tries every family the project has, each started from the learned (and
+sized) rod, and keeps the one whose simulated piles look most like the user's frames:
+
+  rod    the rod itself (cylinders, pins, rollers);
+  box    one convex piece fitted to reconstruct the frames (`shapefit.fit_shape`: blocks,
+         plates);
+  bars   two convex pieces fitted so: a union of convex pieces, for a part that is neither
+         round nor box-like (a T, an L, a bracket);
+  discs  the rod's radius profile cut into two flat-ended discs (a head on a shaft);
+  ring   one hexagonal disc with a hole (nuts, washers);
+  taper  one disc tapering to 0.4 of its radius (cones, stoppers).
+
+Each candidate is scored by two label-free measures the loop already trusts:
+  * piles: `piles` scenes of the candidate, at each of `scales` (the whole template scaled),
+    simulated in the user's bin, through the user's camera, cut as the frames are; the
+    1-Wasserstein distance of their heights (every pixel of the crop, the floor included: the
+    parts' heights and visible area at once) to the user's frames' (`pilematch.heights`, the
+    measure that sizes the bolt's head), at the candidate's best scale. Why scales: a rod
+    sized by reconstruction comes out large (the shipped tilted cylinders' rod is 1.4 times
+    the part: it covers more of each part), and piles of a template too large lie unlike the
+    part's; piles of the true cylinder measure 0.05 against the frames, of that rod 0.36;
+  * held-out reconstruction: the pyramid L1 of the candidate's renders (as made, unscaled),
+    placed by its encoder, against frames no fit saw (`shapefit._recon` at level 1).
+The kept family minimises the sum of the two, each divided by its best value over the
+candidates: a candidate must both pile like the part and explain the frames. The piles the
+loop then simulates are of the kept candidate at its best scale. Everything is written to
+out/family.json (each candidate's scores, scale and seconds), out/family.png (the scores) and
+each candidate's folder; a killed choice resumes candidate by candidate.
+"""
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy.stats import wasserstein_distance
+from tqdm import tqdm
+
+from inseggan_ros.core import checkpoint
+from inseggan_ros.evaluation.evaluate import write_json
+from inseggan_ros.learning.pilematch import heights
+from inseggan_ros.learning.shapefit import ShapeFitConfig, _recon, fit_shape, hold_out
+from inseggan_ros.runtime.model import RING_WALLS, build_models
+
+# each family: how its template is made from the rod (`shapefit.ShapeFitConfig`; None: the
+# rod as it is). The fitted ones' iterations are `FamilyConfig.fit_iterations`.
+FAMILIES: dict[str, ShapeFitConfig | None] = {
+    "rod": None,
+    "box": ShapeFitConfig(pieces=1, walls=4, start="box"),
+    "bars": ShapeFitConfig(pieces=2, walls=4, start="box"),
+    "discs": ShapeFitConfig(pieces=2, walls=8, start="discs", iterations=0),
+    "ring": ShapeFitConfig(pieces=1, walls=RING_WALLS, start="discs", hole=0.5, iterations=0),
+    "taper": ShapeFitConfig(pieces=1, walls=8, start="discs", taper=0.4, iterations=0),
+}
+
+
+@dataclass(frozen=True)
+class FamilyConfig:
+    families: tuple[str, ...] = tuple(FAMILIES)  # the candidates
+    piles: int = 60  # simulated scenes of each candidate at each scale
+    scales: tuple[float, ...] = (0.55, 0.7, 0.85, 1.0)  # of each candidate's whole template
+    fit_iterations: int = 500  # of the fitted families (box, bars)
+    frames: int = 600  # of the user's frames, at most, for the fits and the heights
+    val_frames: int = 80  # held out of them for the reconstruction score
+    seed: int = 0  # of the piles (every candidate piled from the same scene seeds)
+    workers: int = 1  # simulation processes
+
+    def __post_init__(self):
+        unknown = [f for f in self.families if f not in FAMILIES]
+        if not self.families or unknown or len(set(self.families)) != len(self.families):
+            raise ValueError(f"families {self.families!r} invalid; valid: one or more of "
+                             f"{', '.join(FAMILIES)}, each once")
+        if not self.scales or any(not 0 < v <= 4 for v in self.scales) \
+                or list(self.scales) != sorted(set(self.scales)):
+            raise ValueError(f"scales {self.scales!r} invalid; valid: one or more increasing "
+                             "factors in (0, 4]")
+        for key in ("piles", "fit_iterations", "frames", "val_frames", "workers"):
+            if getattr(self, key) < 1:
+                raise ValueError(f"{key} {getattr(self, key)!r} invalid; valid: >= 1")
+        if self.val_frames >= self.frames:
+            raise ValueError(f"val_frames {self.val_frames} invalid; valid: fewer than frames "
+                             f"({self.frames})")
+
+
+def make_candidate(family: str, rod_file: Path, x: np.ndarray, val: np.ndarray, out: Path,
+                   cfg: FamilyConfig, progress: bool = False) -> Path:
+    """The model of `family` made from the rod model `rod_file` (fitted to the frames `x`, kept
+    where it reconstructs `val` best, for the fitted families) -> its file."""
+    shape = FAMILIES[family]
+    if shape is None:
+        return Path(rod_file)
+    if shape.iterations:
+        shape = replace(shape, iterations=cfg.fit_iterations,
+                        eval_every=max(1, cfg.fit_iterations // 2))
+    shape = replace(shape, frames=len(x), val_frames=max(1, len(val)), seed=cfg.seed)
+    return Path(fit_shape(rod_file, x, out, shape, val_x=val, progress=progress)["model"])
+
+
+def scaled_model(file: Path, s: float, dest: Path) -> Path:
+    """The model `file` with its template `s` times as large (a rod: `sizing.scale_state`; a
+    convex template: every piece's centre and planes scaled about the template's origin),
+    written to `dest`; `file` itself where `s` is 1."""
+    from inseggan_ros.learning.sizing import scale_state
+    from inseggan_ros.runtime.model import CONVEX_MIN_EXTENT, _softplus_inverse
+
+    if s == 1.0:
+        return Path(file)
+    state = checkpoint.load(file)
+    if state["model_config"].get("renderer", "spheres") == "spheres":
+        scale_state(state, s)
+    else:  # each plane at reach + MIN + softplus(extent) from its centre: all of it x s
+        g = state["generator"]
+        g["centre"] = g["centre"] * s
+        kept = s * (CONVEX_MIN_EXTENT + torch.nn.functional.softplus(g["extent"].double()))
+        g["extent"] = _softplus_inverse((kept - CONVEX_MIN_EXTENT).clamp_min(1e-4)).to(
+            g["extent"].dtype)
+    return checkpoint.save(dest, state)
+
+
+def held_out_l1(file: Path, val: np.ndarray) -> float:
+    """The candidate's renders, placed by its own encoder, against `val` (pyramid L1, level 1)."""
+    state = checkpoint.load(file)
+    _, G, E = build_models(state, file)
+    G.eval(), E.eval()
+    with torch.no_grad():
+        xv = torch.from_numpy(np.ascontiguousarray(val, dtype=np.float32))
+        return float(_recon(G, E, xv, 1))
+
+
+def pile_distance(file: Path, data, meta, view: dict, folder: Path, ref: np.ndarray,
+                  cfg: FamilyConfig) -> float:
+    """`cfg.piles` scenes of the model `file`'s template simulated as the user's frames were
+    taken and cut as they are -> the W1 distance of their heights to `ref` (the user's)."""
+    from inseggan_ros.data import datasets as data_mod
+    from inseggan_ros.learning.piles import pile_scene
+    from inseggan_ros.sim.dataset import DatasetSpec, generate
+
+    shutil.rmtree(folder, ignore_errors=True)  # of a choice killed while simulating it
+    spec = DatasetSpec(pile_scene(data, meta, file), {"train": 0, "val": 0, "test": cfg.piles},
+                       seed=cfg.seed)
+    generate(spec, folder, workers=cfg.workers, progress=False)
+    x = data_mod.load_sim_split(folder, "test", **view)["x"]
+    shutil.rmtree(folder)
+    return float(wasserstein_distance(heights(x), ref))
+
+
+def combined(rows: list[dict]) -> list[float]:
+    """Each row's score: its W1 over the best W1 plus its reconstruction over the best."""
+    w = min(r["pile_w1"] for r in rows)
+    e = min(r["recon_l1"] for r in rows)
+    return [r["pile_w1"] / max(w, 1e-9) + r["recon_l1"] / max(e, 1e-9) for r in rows]
+
+
+def choose(rod_file, frames: np.ndarray, data, meta, view: dict, out,
+           cfg: FamilyConfig = FamilyConfig(), progress: bool = True) -> dict:
+    """Every family of `cfg` made from the rod model `rod_file`, piled and scored against the
+    user's `frames` ((N, 1, H, W) prepared, no label; `data`, `meta` and `view` as the loop's
+    piles take them) -> the choice (also out/family.json): "rows" (each candidate: family,
+    model, its best scale and the model at it ("part"), pile_w1 there, recon_l1, score,
+    seconds), "kept" (the family), "model" (its file as made) and "part" (at its scale: what
+    the piles are of).
+    Skipped when out/family.json holds a choice of the same config and rod."""
+    out = Path(out)
+    config = json.loads(json.dumps(asdict(cfg)))
+    done = json.loads((out / "family.json").read_text()) if (out / "family.json").is_file() \
+        else None
+    if done and done["config"] == config and done["rod"] == str(rod_file):
+        return done
+    frames = np.asarray(frames)[:cfg.frames]
+    x, val = hold_out(frames, ShapeFitConfig(frames=cfg.frames - cfg.val_frames,
+                                             val_frames=cfg.val_frames))
+    ref = heights(frames)
+    out.mkdir(parents=True, exist_ok=True)
+    log = out / "candidates.jsonl"
+    rows = {r["family"]: r for r in map(json.loads, log.read_text().splitlines())
+            if r["rod"] == str(rod_file) and r["config"] == config} if log.is_file() else {}
+    for family in tqdm(cfg.families, desc="template family", unit="family",
+                       disable=not progress):
+        if family in rows:
+            continue
+        t0 = time.monotonic()
+        try:
+            file = make_candidate(family, Path(rod_file), x, val, out / family, cfg)
+        except ValueError as e:  # a rod too short for two discs, a ring's wall too thin
+            rows[family] = {"family": family, "skipped": str(e)}
+            continue
+        w1 = {}
+        for v in cfg.scales:
+            made = scaled_model(file, v, out / family / f"scale{v:g}.pt")
+            w1[v] = pile_distance(made, data, meta, view, out / family / "piles", ref, cfg)
+        scale = min(w1, key=w1.get)
+        row = {"family": family, "model": str(file), "rod": str(rod_file), "config": config,
+               "scale": scale, "part": str(scaled_model(file, scale,
+                                                        out / family / f"scale{scale:g}.pt")),
+               "recon_l1": held_out_l1(file, val), "pile_w1": w1[scale],
+               "pile_w1_by_scale": {f"{v:g}": round(d, 5) for v, d in w1.items()},
+               "seconds": round(time.monotonic() - t0, 1)}
+        with open(log, "a") as f:
+            f.write(json.dumps(row) + "\n")
+        rows[family] = row
+    return _decide(rows, rod_file, config, out)
+
+
+def _decide(rows: dict, rod_file, config: dict, out: Path) -> dict:
+    """The candidate of the lowest combined score -> the choice, written to out/family.json and
+    drawn to out/family.png."""
+    scored = [r for r in rows.values() if "skipped" not in r]
+    if not scored:
+        raise ValueError(f"no template family could be made from {rod_file}: "
+                         + "; ".join(f"{r['family']}: {r['skipped']}" for r in rows.values()))
+    for r, s in zip(scored, combined(scored)):
+        r["score"] = round(s, 4)
+    best = min(scored, key=lambda r: r["score"])
+    choice = {"config": config, "rod": str(rod_file), "kept": best["family"],
+              "model": best["model"], "scale": best["scale"], "part": best["part"],
+              "rows": [{k: v for k, v in r.items() if k not in ("rod", "config")}
+                       for r in rows.values()],
+              "seconds": round(sum(r.get("seconds", 0.0) for r in scored), 1)}
+    _plot(scored, best["family"], out / "family.png")
+    write_json(out / "family.json", choice)
+    return choice
+
+
+def _plot(rows: list[dict], kept: str, path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = [r["family"] for r in rows]
+    fig, axes = plt.subplots(1, 3, figsize=(10, 3))
+    for ax, key, title in zip(axes, ("pile_w1", "recon_l1", "score"),
+                              ("piles' heights vs frames (W1)", "held-out reconstruction L1",
+                               "combined (lower is kept)")):
+        ax.bar(names, [r[key] for r in rows],
+               color=["tab:green" if n == kept else "tab:gray" for n in names])
+        ax.set_title(title, fontsize=9)
+        ax.tick_params(axis="x", labelsize=8)
+    fig.suptitle(f"template family: {kept} kept")
+    fig.tight_layout()
+    tmp = path.with_suffix(".tmp.png")
+    fig.savefig(tmp, dpi=90)
+    plt.close(fig)
+    tmp.replace(path)
