@@ -443,8 +443,8 @@ def test_the_default_loop_chooses_the_template_family_then_piles_it_once(tmp):
     assert shipped["model_config"]["renderer"] == want
     recipe = yaml.safe_load((out / "recipe.yaml").read_text())
     assert recipe["families"] == ["rod", "box", "bars", "discs", "ring", "taper"]
-    stamps = {f: f.stat().st_mtime_ns for f in (out / "family" / "family.json",
-                                                 sim / "meta.json")}
+    done = (out / "family" / "family.json", sim / "meta.json")
+    stamps = {f: f.stat().st_mtime_ns for f in done}
     run_cli(*args, check=True, timeout=600)
     assert {f: f.stat().st_mtime_ns for f in stamps} == stamps
     # --families rod: no choice; a family beside a named template is refused

@@ -858,6 +858,10 @@ def _finishing_stages(finished: Path, sim: Path, view: dict, data, out: Path, cf
     return finished
 
 
+CARD_FAMILY_KEYS = ("family", "scale", "pile_w1", "pile_w1_by_scale", "recon_l1", "score",
+                    "seconds", "skipped")  # of each candidate, on the card
+
+
 def _export_stage(finished: Path, sim: Path, view: dict, data, cfg: LoopConfig, out: Path,
                   camera, recipe: dict | None) -> dict:
     """Stage 5: the vote's scale chosen on the last piles' validation split (where
@@ -872,9 +876,7 @@ def _export_stage(finished: Path, sim: Path, view: dict, data, cfg: LoopConfig, 
         chosen = json.loads((out / "family" / "family.json").read_text())
         card["template_family"] = {  # each candidate's scores and time, the one kept
             "kept": chosen["kept"], "scale": chosen["scale"], "seconds": chosen["seconds"],
-            "candidates": [{k: r[k] for k in ("family", "scale", "pile_w1", "pile_w1_by_scale",
-                                               "recon_l1", "score", "seconds", "skipped")
-                            if k in r}
+            "candidates": [{k: r[k] for k in CARD_FAMILY_KEYS if k in r}
                            for r in chosen["rows"]]}
     card["verdict"] = verdict(card)  # the label-free judgement `inseggan ship` reads
     write_json(out / "model" / "card.json", card)
