@@ -34,8 +34,9 @@ bench: setup
 	@$(ENV) python -m tools.bench_sim
 
 # segmenter node: 1280x720 16UC1 at 30 Hz for 60 s; latency, drops, peak memory
+# make bench-node ARGS="--baseline main --rounds 2"   (the code at main beside this tree's)
 bench-node: setup
-	@$(ENV) ROS_DOMAIN_ID=$${ROS_DOMAIN_ID:-43} python -m tools.bench_node
+	@$(ENV) ROS_DOMAIN_ID=$${ROS_DOMAIN_ID:-43} python -m tools.bench_node $(ARGS)
 
 sheet: setup
 	@$(ENV) scripts/ros2run inseggan_ros inseggan contact-sheet --out docs/contact_sheet.png

@@ -103,6 +103,40 @@ def test_orientation_has_the_normal_as_its_z_axis():
         np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
 
 
+def test_quaternion_is_scipys():
+    """`Pick.orientation`'s quaternion, written out, is scipy's Rotation.from_matrix(R)
+    .as_quat() on every branch (largest diagonal entry or trace), with its sign."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(5)
+    normals = [rng.normal(size=3) for _ in range(2000)] + [np.array([0, 0, -1.0]),
+                                                           np.array([1.0, 0, 0])]
+    for n in normals:
+        R = picks.frame_from_normal(n / np.linalg.norm(n))
+        np.testing.assert_allclose(picks.quaternion_from_matrix(R),
+                                   Rotation.from_matrix(R).as_quat(), atol=1e-15)
+    for R in Rotation.random(500, random_state=6).as_matrix():
+        np.testing.assert_allclose(picks.quaternion_from_matrix(R),
+                                   Rotation.from_matrix(R).as_quat(), atol=1e-14)
+
+
+def test_surface_is_the_points_arrays_centroid_and_normal():
+    """`_surface` on contiguous columns: the centroid, the near points and the normal of the
+    (N, 3) array's own reductions, up to the order of the sums."""
+    rng = np.random.default_rng(7)
+    for _ in range(50):
+        zs = 0.5 + 0.01 * rng.random(3000)
+        pts = np.stack([rng.random(3000) * 0.05 * zs, rng.random(3000) * 0.05 * zs, zs], 1)
+        footprint = zs ** 2
+        centroid = (pts * footprint[:, None]).sum(0) / footprint.sum()
+        dist = np.linalg.norm(pts - centroid, axis=1)
+        near = dist <= dist.min() + 0.004
+        got_centroid, got_normal = picks._surface(pts, zs, 0.004)
+        np.testing.assert_allclose(got_centroid, centroid, rtol=1e-13)
+        np.testing.assert_allclose(got_normal, picks.plane_normal(pts[near], footprint[near]),
+                                   atol=1e-9)
+
+
 def test_bad_input_is_named():
     depth = np.ones((80, 100))
     with pytest.raises(ValueError, match="depth .* and labels .* must be the same"):

@@ -17,6 +17,11 @@ labels and the picks (so that the node computes them). Printed:
   * the node's peak resident memory (VmHWM of its process);
   * for reference, in this process on the same frames: preprocessing + inference alone, and
     decoding/encoding the Image messages alone.
+With `--baseline REF` (a git revision), the segmenter of the code at REF (`git archive` into a
+temporary folder, run from there on the same installed model) is measured in the same run on
+the same frames, alternately with this tree's (`--rounds` times each, baseline first), and a
+table sets each round's figures side by side: a change's figure beside the figure of the code
+before it, on a machine whose load varies from minute to minute.
 """
 from __future__ import annotations
 
@@ -24,6 +29,7 @@ import argparse
 import os
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -136,13 +142,19 @@ def parse_args(argv):
     ap.add_argument("--node-sets-profile", action="store_true",
                     help="start the segmenter without the profile variable, as a plain "
                          "`ros2 run` does, so that it must set the profile itself")
+    ap.add_argument("--baseline", metavar="REF",
+                    help="also measure the segmenter of git revision REF (e.g. HEAD~1, main), "
+                         "alternately with this tree's, and print the two side by side")
+    ap.add_argument("--rounds", type=int, default=1,
+                    help="with --baseline: runs of each, alternating (default 1)")
     return ap.parse_args(argv)
 
 
-def segmenter_command(args, flags: dict) -> list[str]:
+def segmenter_command(args, flags: dict, program: list[str] | None = None) -> list[str]:
     """The segmenter's command line: the parameters file first (rcl gathers every -p into one
     set at the first -p's place, so a file after any -p would override even the -p flags that
-    follow it), then the model, the settings' flags, the second thread."""
+    follow it), then the model, the settings' flags, the second thread. `program`: what runs
+    the node (default: the installed executable)."""
     from tools.demo import _executable
 
     model = ["--params-file", str(args.params_file)] if args.params_file else []
@@ -151,13 +163,29 @@ def segmenter_command(args, flags: dict) -> list[str]:
     for name, value in flags.items():
         model += ["-p", f"{name}:={value}"]
     model += ["-p", f"superpixel_thread:={str(args.superpixel_thread == 'on').lower()}"]
-    return [_executable("segmenter"), "--ros-args", *model, "-p", "latency_window:=100000"]
+    program = program or [_executable("segmenter")]
+    return [*program, "--ros-args", *model, "-p", "latency_window:=100000"]
 
 
-def stream(args, frames, command: list[str], env) -> dict:
-    """Start the segmenter, wait until it answers, publish the frames (with their CameraInfo)
-    at args.rate for args.seconds -> {sent, answered, picked (stamp -> received time), first
-    and last diagnostics, peak_mb}; {"error": ...} when the node never answered."""
+def baseline_tree(ref: str, folder: str) -> list[str]:
+    """The source of git revision `ref` of this repository, extracted into `folder` -> the
+    command that runs its segmenter (from `folder`, so that its package is the one imported;
+    the model and the Fast DDS profile are the installed ones). Raises ValueError when git
+    does not know `ref`."""
+    root = Path(__file__).resolve().parents[1]
+    archive = subprocess.run(["git", "-C", str(root), "archive", ref], capture_output=True)
+    if archive.returncode != 0:
+        raise ValueError(f"--baseline {ref}: {archive.stderr.decode().strip()}")
+    subprocess.run(["tar", "-x", "-C", folder], input=archive.stdout, check=True)
+    return [sys.executable, "-c",
+            "import sys; from inseggan_ros.ros.segmenter import main; sys.exit(main())"]
+
+
+def stream(args, frames, command: list[str], env, cwd: str | None = None) -> dict:
+    """Start the segmenter (in `cwd`), wait until it answers, publish the frames (with their
+    CameraInfo) at args.rate for args.seconds -> {sent, answered, picked (stamp -> received
+    time), first and last diagnostics, peak_mb}; {"error": ...} when the node never
+    answered."""
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseArray
@@ -180,7 +208,7 @@ def stream(args, frames, command: list[str], env) -> dict:
         node.create_subscription(msg_type, topic, lambda m, d=out[kind]: d.__setitem__(
             conversions.stamp_to_ns(m.header.stamp), time.time_ns()), 10)
     node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
-    seg = subprocess.Popen(command, stderr=subprocess.PIPE, text=True, env=env)
+    seg = subprocess.Popen(command, stderr=subprocess.PIPE, text=True, env=env, cwd=cwd)
     msgs = [conversions.numpy_to_image(f, "16UC1") for f in frames]
 
     def send(m):
@@ -298,12 +326,52 @@ def main(argv=None) -> int:
     env = None
     if args.node_sets_profile:
         env = {k: v for k, v in os.environ.items() if k not in PROFILE_VARIABLES}
+    if args.baseline:
+        return compare(args, frames, flags, env, ref, profile)
     run = stream(args, frames, segmenter_command(args, flags), env)
     if "error" in run:
         print(f"bench-node: error: {run['error']}", file=sys.stderr)
         return 1
     report(args, ref, profile, run)
     return 0
+
+
+def compare(args, frames, flags: dict, env, ref: dict, profile) -> int:
+    """`--baseline`: the code at args.baseline and this tree's, alternately, args.rounds times
+    each -> each run's report, then the table of both."""
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="bench_node_baseline_") as folder:
+        try:
+            program = baseline_tree(args.baseline, folder)
+        except ValueError as e:
+            print(f"bench-node: error: {e}", file=sys.stderr)
+            return 2
+        for k in range(args.rounds):
+            for name, command, cwd in (
+                    (f"baseline {args.baseline}", segmenter_command(args, flags, program),
+                     folder),
+                    ("this tree", segmenter_command(args, flags), None)):
+                print(f"\nbench-node: round {k + 1}/{args.rounds}: {name}", flush=True)
+                run = stream(args, frames, command, env, cwd)
+                if "error" in run:
+                    print(f"bench-node: error ({name}): {run['error']}", file=sys.stderr)
+                    return 1
+                report(args, ref, profile, run)
+                rows.append((k + 1, name, run["last"]))
+    print_comparison(rows)
+    return 0
+
+
+def print_comparison(rows) -> None:
+    """One line per run: node latency, labels published and everything (picks included), p50
+    and p99, and each stage's median (ms)."""
+    print(f"\n{'round':>5}  {'code':<22} {'labels p50':>10} {'p99':>7} {'total p50':>10} "
+          f"{'p99':>7}  " + " ".join(f"{s:>10}" for s in STAGES))
+    for k, name, last in rows:
+        stages = " ".join(f"{last.get(f'stage_{s}_p50_ms', '?'):>10}" for s in STAGES)
+        print(f"{k:>5}  {name:<22} {last.get('latency_p50_ms', '?'):>10} "
+              f"{last.get('latency_p99_ms', '?'):>7} {last.get('total_p50_ms', '?'):>10} "
+              f"{last.get('total_p99_ms', '?'):>7}  {stages}")
 
 
 if __name__ == "__main__":

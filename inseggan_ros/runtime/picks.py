@@ -32,6 +32,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from inseggan_ros.core.order_stats import median, percentile
+
 # A pixel's surface area grows as 1 / cos(angle between the ray and the normal); below this
 # cosine (about 78 degrees) it is capped, so that a few grazing pixels cannot dominate.
 MIN_COS = 0.2
@@ -82,11 +84,9 @@ class Pick:
         """Quaternion (x, y, z, w) of a frame whose z axis is `normal` and whose x axis is the
         camera's x axis projected onto the surface (the camera's y axis where x is normal);
         in another frame (`transform_picks`) that same pose, expressed there."""
-        from scipy.spatial.transform import Rotation
-
         if self.rotation is not None:
             return np.asarray(self.rotation, float)
-        return Rotation.from_matrix(frame_from_normal(self.normal)).as_quat()
+        return quaternion_from_matrix(frame_from_normal(self.normal))
 
 
 def frame_from_normal(normal: np.ndarray) -> np.ndarray:
@@ -96,6 +96,25 @@ def frame_from_normal(normal: np.ndarray) -> np.ndarray:
     x = ref - z * (ref @ z)
     x /= np.linalg.norm(x)
     return np.column_stack([x, np.cross(z, x), z])
+
+
+def quaternion_from_matrix(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion (x, y, z, w) of a 3 x 3 rotation matrix: scipy's Rotation.from_matrix(R)
+    .as_quat() (the same branch on the largest of the diagonal and the trace, the same sign),
+    written out for one matrix, without the checks and array set-up that outweigh it there."""
+    (a, b, c), (d, e, f), (g, h, i) = np.asarray(R, float).tolist()
+    trace = a + e + i
+    choice = max(range(4), key=(a, e, i, trace).__getitem__)  # the first of equal ones
+    if choice == 0:
+        q = (1 - trace + 2 * a, d + b, g + c, h - f)
+    elif choice == 1:
+        q = (d + b, 1 - trace + 2 * e, h + f, c - g)
+    elif choice == 2:
+        q = (g + c, h + f, 1 - trace + 2 * i, d - b)
+    else:
+        q = (h - f, c - g, d - b, 1 + trace)
+    q = np.array(q)
+    return q / np.linalg.norm(q)
 
 
 # A target_rotation whose norm is further than this from 1 is refused (a typo, or the
@@ -261,7 +280,7 @@ def rises(depth: np.ndarray, labels: np.ndarray, instances, boxes=None) -> dict[
             mine, theirs = mk & near_j, mj & near_k
             if mine.sum() >= 3 and theirs.sum() >= 3:
                 d = depth[win]
-                out[k] = max(out[k], float(np.median(d[mine]) - np.median(d[theirs])))
+                out[k] = max(out[k], float(median(d[mine]) - median(d[theirs])))
     return out
 
 
@@ -373,20 +392,31 @@ def _pick(k: int, depth, labels, valid, box, origin, K, occluded, rise: float,
         area = float((pixel_areas(dk, normals, x, y, K)[m] * (s * s)).sum())
         pts, zs = Pk[m], dk[m]
     else:  # the same points, from the instance's pixels alone (`rays`' arithmetic)
-        mr, mc = np.nonzero(m)
+        mr, mc = (rows - r0, cols - c0) if s == 1 else np.nonzero(m)
         v, u = (top[0] + mr * s).astype(np.float64), (top[1] + mc * s).astype(np.float64)
         y = (v - K[1, 2]) / K[1, 1]
         x = (u - K[0, 2] - K[0, 1] * y) / K[0, 0]
         zs = dk[mr, mc]
         pts = np.stack([x * zs, y * zs, zs], 1)
-    footprint = zs ** 2  # / (fx fy), the same for all: left out of the weights
-    centroid = (pts * footprint[:, None]).sum(0) / footprint.sum()
-    dist = np.linalg.norm(pts - centroid, axis=1)
-    near = dist <= dist.min() + cfg.normal_radius
-    if near.sum() < 3:
-        near = dist <= np.sort(dist)[2]
-    normal = plane_normal(pts[near], footprint[near])
+    centroid, normal = _surface(pts, zs, cfg.normal_radius)
     occ = 0.0 if occluded is None or k > len(occluded) else float(occluded[k - 1])
     return Pick(instance=k, position=centroid, normal=normal, area=area,
                 occluded=occ, rise=rise, free=rise <= cfg.free_rise,
-                top_depth=float(np.percentile(zs, 5)), pixels=pixels)
+                top_depth=float(percentile(zs, 5)), pixels=pixels)
+
+
+def _surface(pts: np.ndarray, zs: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) points of an instance and their depths -> (its centroid, each point weighted by
+    its footprint Z^2 (/ fx fy, the same for all: left out), the unit normal of the plane
+    fitted to its points within `radius` of its point nearest the centroid (at least 3)).
+    Per coordinate on contiguous columns: the numbers of the (N, 3) array's reductions, up to
+    the order of the centroid's sums."""
+    footprint = zs ** 2
+    px, py, pz = (np.ascontiguousarray(pts[:, i]) for i in range(3))
+    total = footprint.sum()
+    centroid = np.array([np.dot(footprint, c) for c in (px, py, pz)]) / total
+    dist = np.sqrt((px - centroid[0]) ** 2 + (py - centroid[1]) ** 2 + (pz - centroid[2]) ** 2)
+    near = dist <= dist.min() + radius
+    if near.sum() < 3:
+        near = dist <= np.sort(dist)[2]
+    return centroid, plane_normal(pts[near], footprint[near])

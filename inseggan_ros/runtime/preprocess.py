@@ -52,6 +52,8 @@ from typing import Iterable
 import cv2
 import numpy as np
 
+from inseggan_ros.core.order_stats import median, percentile
+
 Rect = tuple[int, int, int, int]  # x0, y0, x1, y1 (pixels, end exclusive)
 # A floor plane (a, b, c): 1 / depth = a * u + b * v + c at pixel (u, v) = (column, row) of the
 # full frame. A plane seen through a pinhole camera is exactly affine in inverse depth, so it is
@@ -181,6 +183,13 @@ class Prepared:
 # ------------------------------------------------------------------------------ helpers
 def _sanitize(depth_m) -> tuple[np.ndarray, np.ndarray]:
     """-> (float32 depth with 0 where there is no reading, valid mask). Raises on bad input."""
+    d = _checked(depth_m)
+    return d, d > 0
+
+
+def _checked(depth_m) -> np.ndarray:
+    """`_sanitize`'s depth without its mask (a frame whose bin region is known needs the mask
+    of the region only). Raises on bad input."""
     d = np.asarray(depth_m)
     if d.ndim != 2 or min(d.shape) < 2:
         raise ValueError(f"depth must be a 2-D (H, W) image in metres, got shape {d.shape}")
@@ -197,11 +206,10 @@ def _sanitize(depth_m) -> tuple[np.ndarray, np.ndarray]:
     if lo < 0:
         raise ValueError(f"depth has negative values (min {lo:.4g}); valid: metres >= 0, "
                          "with 0 or NaN for no reading")
-    valid = d > 0
     if hi <= 0:
         raise ValueError(f"no valid depth: all {d.size} pixels are 0, NaN or infinite (no "
                          "reading); check the depth topic and its encoding")
-    return d, valid
+    return d
 
 
 def _mm_histogram(values: np.ndarray) -> tuple[np.ndarray, int]:
@@ -290,7 +298,7 @@ def _fit_plane(u: np.ndarray, v: np.ndarray, z: np.ndarray, tol: float,
     A = np.stack([uc, vc, np.ones_like(u)], 1).astype(np.float64)
     w = 1.0 / z.astype(np.float64)
     rng = np.random.default_rng(0)
-    far = np.flatnonzero(z >= np.quantile(z, 0.7))
+    far = np.flatnonzero(z >= percentile(z, 70))  # np.quantile(z, 0.7)'s number
     idx = rng.choice(far if len(far) >= 3 else np.arange(len(z)), (hypotheses, 3))
     M = A[idx]
     ok = np.abs(np.linalg.det(M)) > 20.0  # the 3 points span a triangle of > 10 square pixels
@@ -852,11 +860,15 @@ def node_defaults(cfg: PreprocessConfig, first_depths_m) -> PreprocessConfig:
 # ------------------------------------------------------------------------------ frames
 def prepare(depth_m: np.ndarray, cfg: PreprocessConfig = PreprocessConfig()) -> Prepared:
     """One depth frame (H, W) in metres (0 or NaN = no reading) -> the model's input."""
-    d, valid = _sanitize(depth_m)
-    found = _find_bin(d, valid, None) if cfg.roi is None and cfg.polygon is None else None
+    if cfg.roi is None and cfg.polygon is None:
+        d, valid = _sanitize(depth_m)
+        found = _find_bin(d, valid, None)
+    else:  # the region's mask only
+        d, found = _checked(depth_m), None
     roi = _region(cfg, d, found)
     x0, y0, x1, y1 = roi
-    crop, ok = d[y0:y1, x0:x1], valid[y0:y1, x0:x1]
+    crop = d[y0:y1, x0:x1]
+    ok = crop > 0
     inside = None
     if cfg.polygon is not None:
         inside = _polygon_mask(d.shape, cfg.polygon)[y0:y1, x0:x1]
@@ -873,7 +885,7 @@ def prepare(depth_m: np.ndarray, cfg: PreprocessConfig = PreprocessConfig()) -> 
         plane = cfg.floor_plane or (found.plane if found is not None else None)
         if plane is None:
             u, v, z = _grid_points(crop, usable, x0, y0, max_points=1500)  # per frame: cheap
-            plane = _fit_plane(u, v, z, _tolerance(float(np.median(z))))
+            plane = _fit_plane(u, v, z, _tolerance(float(median(z))))
             if plane is None:
                 raise ValueError(f"cannot fit the floor: too few valid pixels in the bin "
                                  f"region {roi}; check roi / polygon")

@@ -333,7 +333,8 @@ class Segmenter:
                      timings: dict | None = None) -> dict:
         """`segment_batch` up to the vote: the z-buffered (or label head's, or centre votes')
         labels, smoothed, with the renders and the reconstruction. `centres`, `timings`: as
-        `segment_batch`'s."""
+        `segment_batch`'s. The z-buffer's labels are made before the centre votes are waited
+        for: in this thread while the second one (`superpixel_thread`) makes them."""
         t0 = time.perf_counter()
         tau = self.tau if tau is None else float(tau)
         cfg = self.inference if settings is None else settings
@@ -343,6 +344,10 @@ class Segmenter:
                     keep=cfg.refine_keep, swaps=cfg.refine_swaps)
         fg_t = (x[:, 0] > -1 + 1e-4) if fg is None else torch.as_tensor(fg, device=self.device)
         n = out["renders"].shape[1]
+        t1 = time.perf_counter()
+        # the z-buffer's labels need no centre votes: made while the second thread makes them
+        labels = labels_from_renders(out["renders"], tau, fg_t)
+        t_labels = time.perf_counter() - t1
         if cfg.centre_votes == "on":
             if isinstance(centres, Future):
                 centres = centres.result()
@@ -350,9 +355,8 @@ class Segmenter:
                 centres = self.centre_votes(x, fg_t, n, cfg.centre_precision, founding=True)
             if isinstance(centres, tuple):  # where a missed part may be split off: `founding`
                 centres, out["founding"] = centres
-        if timings is not None:
-            timings["network"] = time.perf_counter() - t0
-        labels = labels_from_renders(out["renders"], tau, fg_t)
+        if timings is not None:  # the networks', and waiting for the second thread's
+            timings["network"] = time.perf_counter() - t0 - t_labels
         if cfg.label_head == "on":
             if self.label_head is None:
                 raise ValueError("label_head on: this model has no label head; valid: off")
