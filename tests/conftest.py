@@ -127,7 +127,7 @@ def which(name):
 # The test files that train or simulate the most, longest first: collected before the others so
 # that, when pytest-xdist shares the files between processes (scripts/test.sh), none of them
 # starts last and leaves the other process idle.
-LONGEST_FIRST = ("test_loop.py", "test_distill.py", "test_train.py", "test_unlabelled.py",
+LONGEST_FIRST = ("test_loop.py", "test_family.py", "test_distill.py", "test_train.py", "test_unlabelled.py",
                  "test_label_head.py", "test_selffit.py", "test_models.py", "test_template.py")
 
 
@@ -140,7 +140,9 @@ SLOW = {
                      "test_one_command_from_a_bag_learns_the_shape_then_ships_a_model",
                      "test_the_loop_piles_a_nut_with_its_hole_where_the_grid_asks_for_one",
                      "test_the_loop_piles_a_disc_template_matched_to_the_frames_and_keeps_the_rod",
-                     "test_the_loop_fits_a_convex_template_from_the_rod_and_piles_and_ships_it"),
+                     "test_the_loop_fits_a_convex_template_from_the_rod_and_piles_and_ships_it",
+                     "test_the_default_loop_chooses_the_template_family_then_piles_it_once"),
+    "test_family.py": ("test_a_block_s_frames_choose_a_box_over_the_rod_and_the_taper_and_resume",),
     "test_train.py": ("test_tiny_training_run_improves_reconstruction",
                       "test_killed_run_resumes_from_its_last_checkpoint",
                       "test_ddp_two_processes_gloo_identical_weights",

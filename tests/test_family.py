@@ -1,0 +1,85 @@
+"""The template family chosen by the user's frames (`learning/family.py`): each family made from
+the learned rod, piled at several scales in the user's bin, scored against the frames without
+a label; the scaled templates exact; the choice resumable."""
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from conftest import REPO
+
+from inseggan_ros.core import checkpoint
+from inseggan_ros.learning import family
+from inseggan_ros.learning.piles import BagFrames, pile_view
+from inseggan_ros.learning.shapefit import ShapeFitConfig, convex_from_rod
+from inseggan_ros.runtime.model import build_models
+from inseggan_ros.runtime.preprocess import PreprocessConfig
+from inseggan_ros.sim.learned import template_pieces_units
+
+ROD = Path(__file__).resolve().parent / "data" / "wooden_block_unsupervised.pt"  # a block's rod
+BAG = REPO / "bags" / "wooden_block_realsense"  # 8 frames of 4 blocks, the rod's camera
+
+
+def _extent(file: Path) -> np.ndarray:
+    state = checkpoint.load(file)
+    pts = np.concatenate(template_pieces_units(build_models(state, file)[1]))
+    return pts.max(0) - pts.min(0)
+
+
+def test_config_refuses_what_it_cannot_do():
+    for kw, said in (({"families": ("rod", "cube")}, "families"),
+                     ({"families": ()}, "families"),
+                     ({"families": ("box", "box")}, "each once"),
+                     ({"scales": (1.0, 0.5)}, "scales"),
+                     ({"scales": (0.0, 1.0)}, "scales"),
+                     ({"piles": 0}, "piles"),
+                     ({"frames": 50, "val_frames": 50}, "val_frames")):
+        with pytest.raises(ValueError, match=said):
+            family.FamilyConfig(**kw)
+
+
+def test_a_scaled_template_is_the_same_shape_that_many_times_as_large(tmp):
+    """A rod and a convex template (a box, two boxes) scaled by `scaled_model`: every extent x s,
+    the rest of the model (its encoder, its poses) as it was; scale 1 is the file itself."""
+    state = checkpoint.load(ROD)
+    for pieces in (1, 2):
+        new, G, E = convex_from_rod(state, ShapeFitConfig(pieces=pieces), ROD)
+        box = checkpoint.save(tmp / f"box{pieces}.pt", {
+            **new, "generator": G.state_dict(), "encoder": E.state_dict()})
+        for file in (ROD, box):
+            assert family.scaled_model(file, 1.0, tmp / "same.pt") == Path(file)
+            half = family.scaled_model(file, 0.5, tmp / f"half_{pieces}_{Path(file).stem}.pt")
+            np.testing.assert_allclose(_extent(half), 0.5 * _extent(file), rtol=2e-3, atol=2e-3)
+            a, b = checkpoint.load(file), checkpoint.load(half)
+            assert all(torch.equal(v, b["encoder"][k]) for k, v in a["encoder"].items())
+            assert all(torch.equal(v, b["generator"][k]) for k, v in a["generator"].items()
+                       if k.startswith("pose."))
+
+
+def test_a_block_s_frames_choose_a_box_over_the_rod_and_the_taper_and_resume(tmp):
+    """On a recording of blocks, from the block's learned rod (round-ended, as tall as it is
+    wide), the fitted box's piles look most like the frames: it is kept, at one of the grid's
+    scales; every candidate's scores are recorded; asked again, nothing is made again."""
+    state = checkpoint.load(ROD)
+    data = BagFrames(BAG, 4)
+    x = data.frames(PreprocessConfig.from_dict(state["preprocess_config"]))[0]["x"]
+    cfg = family.FamilyConfig(families=("rod", "box", "taper"), piles=12, fit_iterations=60,
+                              workers=2)
+    out = tmp / "family"
+    choice = family.choose(ROD, x, data, None, pile_view(data, state), out, cfg, progress=False)
+    assert choice["kept"] == "box", choice["rows"]
+    rows = {r["family"]: r for r in choice["rows"]}
+    assert set(rows) == {"rod", "box", "taper"}
+    for r in rows.values():
+        assert set(r["pile_w1_by_scale"]) == {f"{v:g}" for v in cfg.scales}
+        assert r["pile_w1"] == pytest.approx(min(r["pile_w1_by_scale"].values()), abs=1e-5)
+        assert r["score"] >= 2 - 1e-6
+    assert rows["box"]["score"] == min(r["score"] for r in rows.values())
+    assert choice["part"] == rows["box"]["part"] and Path(choice["part"]).is_file()
+    assert checkpoint.load(choice["model"])["model_config"]["renderer"] == "convex"
+    assert (out / "family.png").is_file()
+    stamp = (out / "family.json").stat().st_mtime_ns
+    again = family.choose(ROD, x, data, None, pile_view(data, state), out, cfg, progress=False)
+    assert again == json.loads((out / "family.json").read_text()) == choice
+    assert (out / "family.json").stat().st_mtime_ns == stamp
