@@ -127,7 +127,8 @@ def which(name):
 # The test files that train or simulate the most, longest first: collected before the others so
 # that, when pytest-xdist shares the files between processes (scripts/test.sh), none of them
 # starts last and leaves the other process idle.
-LONGEST_FIRST = ("test_loop.py", "test_family.py", "test_distill.py", "test_train.py", "test_unlabelled.py",
+LONGEST_FIRST = ("test_loop.py", "test_family.py", "test_distill.py", "test_train.py",
+                 "test_unlabelled.py",
                  "test_label_head.py", "test_selffit.py", "test_models.py", "test_template.py")
 
 
