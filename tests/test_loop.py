@@ -424,6 +424,8 @@ def test_the_default_loop_chooses_the_template_family_then_piles_it_once(tmp):
     kept = min(scored, key=lambda r: r["score"])
     assert fam["kept"] == kept["family"] and f"template family: {kept['family']}" in p.stdout
     assert (out / "family" / "family.png").is_file()
+    readme = (out / "model" / "README.md").read_text()
+    assert f"**Template family:** {kept['family']} kept" in readme and "Verdict" in readme
     # the piles: simulated once, of the kept template (the fitted convex one becomes the model;
     # discs, a ring or a taper are the piles' part and the model stays the rod)
     # at the scale whose piles looked most like the frames

@@ -510,7 +510,7 @@ def label_free_markdown(card: dict) -> str:
         f"{m['composite']}, nf {m['nf']}, latent {m['latent_dim']}",
         f"* **Training:** {trained}; {card['iterations']} iterations, {card['wall_minutes']} min "
         f"wall time",
-        *_distill_line(card), *_recipe_line(card),
+        *_distill_line(card), *_recipe_line(card), *_family_line(card),
         f"* **Checked on:** {src['description']}: {src['frames']} frames. tau calibrated without "
         f"labels on {cal['frames']} frames{_frames_text(cal)}, measured on {held['frames']} "
         f"held-out frames{_frames_text(held)}: {src['held_out_rule']}",
@@ -524,6 +524,7 @@ def label_free_markdown(card: dict) -> str:
         "the input-foreground pixels where some instance's render reaches tau; a visible "
         f"instance labels at least {card['measures']['min_visible_pixels']} of the 64 x 64 "
         "pixels.", "",
+        *_verdict_lines(card),
     ]
     if card.get("labelled"):
         lines += [f"## Against the ground truth ({src.get('labels')})", "",
@@ -533,6 +534,32 @@ def label_free_markdown(card: dict) -> str:
               "rendered alone" + (" | ground truth" if card.get("labelled") else ""), "",
               *_shape_lines(card)]
     return "\n".join(lines)
+
+
+def _family_line(card: dict) -> list[str]:
+    """The README's line on the template family the loop chose, where it chose one."""
+    fam = card.get("template_family")
+    if not fam:
+        return []
+    rows = ", ".join(f"{r['family']} {r['score']:.2f} (W1 {r['pile_w1']:.3f} at x{r['scale']:g}, "
+                     f"reconstruction {r['recon_l1']:.3f}, {r['seconds'] / 60:.1f} min)"
+                     if "score" in r else f"{r['family']} not made ({r['skipped']})"
+                     for r in fam["candidates"])
+    return [f"* **Template family:** {fam['kept']} kept, its piles at x{fam['scale']:g}, of: "
+            f"{rows}; the score is the piles' heights' W1 to the frames over the best plus the "
+            "held-out reconstruction over the best (`family.png` in the loop's folder)"]
+
+
+def _verdict_lines(card: dict) -> list[str]:
+    """The README's section on the loop's label-free verdict, where the card has one."""
+    v = card.get("verdict")
+    if v is None:
+        return []
+    if v["ok"]:
+        return ["**Verdict:** the label-free measures show a model that explains its frames "
+                "(`evaluation/verdict.py`).", ""]
+    return ["**Verdict: the model does not explain its frames.**", "",
+            *[f"* {line}" for line in v["problems"]], ""]
 
 
 def _recipe_line(card: dict) -> list[str]:

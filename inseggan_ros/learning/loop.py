@@ -89,6 +89,7 @@ from tqdm import tqdm
 
 from inseggan_ros.evaluation.evaluate import write_json
 from inseggan_ros.evaluation.vote_scale import SCALES as VOTE_SCALES
+from inseggan_ros.evaluation.modelcard import markdown
 from inseggan_ros.evaluation.verdict import verdict
 from inseggan_ros.runtime.model import build_models
 from inseggan_ros.learning.family import FamilyConfig  # noqa: F401 (LoopConfig's type)
@@ -880,6 +881,9 @@ def _export_stage(finished: Path, sim: Path, view: dict, data, cfg: LoopConfig, 
                            for r in chosen["rows"]]}
     card["verdict"] = verdict(card)  # the label-free judgement `inseggan ship` reads
     write_json(out / "model" / "card.json", card)
+    readme = out / "model" / "README.md.tmp"  # again, with the verdict and the family; atomic
+    readme.write_text(markdown(card))
+    readme.replace(out / "model" / "README.md")
     return card
 
 
