@@ -34,9 +34,33 @@ def test_config_refuses_what_it_cannot_do():
                      ({"scales": (1.0, 0.5)}, "scales"),
                      ({"scales": (0.0, 1.0)}, "scales"),
                      ({"piles": 0}, "piles"),
+                     ({"extend": -1}, "extend"),
                      ({"frames": 50, "val_frames": 50}, "val_frames")):
         with pytest.raises(ValueError, match=said):
             family.FamilyConfig(**kw)
+
+
+def test_the_scale_search_steps_past_the_grid_only_while_its_best_is_at_an_end():
+    seen = []
+
+    def distance_to(best):
+        def measure(v):
+            seen.append(v)
+            return abs(v - best)
+        return measure
+
+    cfg = family.FamilyConfig()
+    w1 = family.scale_search(distance_to(1.5), cfg)  # beyond the top: 1.18, 1.38, 1.63
+    assert list(w1)[:4] == [0.55, 0.7, 0.85, 1.0]
+    assert list(w1)[4:] == pytest.approx([1 / 0.85, 1 / 0.85 ** 2, 1 / 0.85 ** 3], abs=1e-3)
+    assert min(w1, key=w1.get) == list(w1)[5]  # 1.38 brackets 1.5: no step past 1.63
+    w1 = family.scale_search(distance_to(0.8), cfg)  # inside the grid: nothing more
+    assert list(w1) == [0.55, 0.7, 0.85, 1.0]
+    w1 = family.scale_search(distance_to(0.01), cfg)  # below it, at most `extend` steps
+    assert len(w1) == 4 + cfg.extend and min(w1) < 0.55 * 0.786 ** 2
+    seen.clear()
+    w1 = family.scale_search(distance_to(9.0), family.FamilyConfig(extend=0))
+    assert list(w1) == seen == [0.55, 0.7, 0.85, 1.0]
 
 
 def test_a_scaled_template_is_the_same_shape_that_many_times_as_large(tmp):

@@ -16,7 +16,8 @@ sized) rod, and keeps the one whose simulated piles look most like the user's fr
   taper  one disc tapering to 0.4 of its radius (cones, stoppers).
 
 Each candidate is scored by two label-free measures the loop already trusts:
-  * piles: `piles` scenes of the candidate, at each of `scales` (the whole template scaled),
+  * piles: `piles` scenes of the candidate, at each of `scales` (the whole template scaled;
+    beyond the grid's end, step by step, where the best lies there: `scale_search`),
     simulated in the user's bin, through the user's camera, cut as the frames are; the
     1-Wasserstein distance of their heights (every pixel of the crop, the floor included: the
     parts' heights and visible area at once) to the user's frames' (`pilematch.heights`, the
@@ -62,12 +63,15 @@ FAMILIES: dict[str, ShapeFitConfig | None] = {
     "taper": ShapeFitConfig(pieces=1, walls=8, start="discs", taper=0.4, iterations=0),
 }
 
+MAX_SCALE = 4.0  # of a candidate's template, at most
+
 
 @dataclass(frozen=True)
 class FamilyConfig:
     families: tuple[str, ...] = tuple(FAMILIES)  # the candidates
     piles: int = 60  # simulated scenes of each candidate at each scale
     scales: tuple[float, ...] = (0.55, 0.7, 0.85, 1.0)  # of each candidate's whole template
+    extend: int = 3  # steps beyond the grid's end where its best lies there (`scale_search`)
     fit_iterations: int = 500  # of the fitted families (box, bars)
     frames: int = 600  # of the user's frames, at most, for the fits and the heights
     val_frames: int = 80  # held out of them for the reconstruction score
@@ -79,10 +83,12 @@ class FamilyConfig:
         if not self.families or unknown or len(set(self.families)) != len(self.families):
             raise ValueError(f"families {self.families!r} invalid; valid: one or more of "
                              f"{', '.join(FAMILIES)}, each once")
-        if not self.scales or any(not 0 < v <= 4 for v in self.scales) \
+        if self.extend < 0:
+            raise ValueError(f"extend {self.extend!r} invalid; valid: >= 0")
+        if not self.scales or any(not 0 < v <= MAX_SCALE for v in self.scales) \
                 or list(self.scales) != sorted(set(self.scales)):
             raise ValueError(f"scales {self.scales!r} invalid; valid: one or more increasing "
-                             "factors in (0, 4]")
+                             f"factors in (0, {MAX_SCALE:g}]")
         for key in ("piles", "fit_iterations", "frames", "val_frames", "workers"):
             if getattr(self, key) < 1:
                 raise ValueError(f"{key} {getattr(self, key)!r} invalid; valid: >= 1")
@@ -153,6 +159,25 @@ def pile_distance(file: Path, data, meta, view: dict, folder: Path, ref: np.ndar
     return float(wasserstein_distance(heights(x), ref))
 
 
+def scale_search(measure, cfg: FamilyConfig) -> dict[float, float]:
+    """`measure(scale)` (a pile distance) at each of `cfg.scales`, then, while the best is at
+    an end of what was measured, one more step beyond it (the ends' own ratio), at most
+    `cfg.extend` steps: a template learned too small or too large is still sized, and a grid
+    that brackets the best costs nothing more. -> {scale: distance}."""
+    w1 = {v: measure(v) for v in cfg.scales}
+    for _ in range(cfg.extend):
+        lo, hi = min(w1), max(w1)
+        best = min(w1, key=w1.get)
+        if len(w1) < 2 or best not in (lo, hi):
+            break
+        ratio = (hi / sorted(w1)[-2]) if best == hi else (lo / sorted(w1)[1])
+        v = round(best * ratio, 4)
+        if not 0 < v <= MAX_SCALE:
+            break
+        w1[v] = measure(v)
+    return dict(sorted(w1.items()))
+
+
 def combined(rows: list[dict]) -> list[float]:
     """Each row's score: its W1 over the best W1 plus its reconstruction over the best."""
     w = min(r["pile_w1"] for r in rows)
@@ -193,10 +218,12 @@ def choose(rod_file, frames: np.ndarray, data, meta, view: dict, out,
         except ValueError as e:  # a rod too short for two discs, a ring's wall too thin
             rows[family] = {"family": family, "skipped": str(e)}
             continue
-        w1 = {}
-        for v in cfg.scales:
+
+        def measure(v: float, file=file, family=family) -> float:
             made = scaled_model(file, v, out / family / f"scale{v:g}.pt")
-            w1[v] = pile_distance(made, data, meta, view, out / family / "piles", ref, cfg)
+            return pile_distance(made, data, meta, view, out / family / "piles", ref, cfg)
+
+        w1 = scale_search(measure, cfg)
         scale = min(w1, key=w1.get)
         row = {"family": family, "model": str(file), "rod": str(rod_file), "config": config,
                "scale": scale, "part": str(scaled_model(file, scale,
