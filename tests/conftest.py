@@ -132,68 +132,119 @@ LONGEST_FIRST = ("test_loop.py", "test_family.py", "test_distill.py", "test_trai
                  "test_label_head.py", "test_selffit.py", "test_models.py", "test_template.py")
 
 
-# The tests that each take ten seconds or more of training, simulation or a whole loop: marked
-# `slow`, so that the fast tier (`make test-fast`, `-m "not slow"`) runs in under 3 minutes for
+# The tests that each took nine seconds or more in the last full run (training, simulation, a
+# whole loop, several CLI processes): marked `slow`, so that the fast tier (`make test-fast`, `-m "not slow"`) runs in under 3 minutes for
 # every change; `make test` (CI) runs them all.
 SLOW = {
-    "test_loop.py": ("test_a_tiny_loop_explains_held_out_scenes_of_its_shape_better_than_its_"
-                     "starting_point",
-                     "test_one_command_from_a_bag_learns_the_shape_then_ships_a_model",
-                     "test_the_loop_piles_a_nut_with_its_hole_where_the_grid_asks_for_one",
-                     "test_the_loop_piles_a_disc_template_matched_to_the_frames_and_keeps_the_rod",
-                     "test_the_loop_fits_a_convex_template_from_the_rod_and_piles_and_ships_it",
-                     "test_the_default_loop_chooses_the_template_family_then_piles_it_once"),
-    "test_family.py": ("test_a_block_s_frames_choose_a_box_over_the_rod_and_the_taper_and_resume",),
-    "test_train.py": ("test_tiny_training_run_improves_reconstruction",
-                      "test_killed_run_resumes_from_its_last_checkpoint",
-                      "test_ddp_two_processes_gloo_identical_weights",
-                      "test_n_is_the_data_sets_parts_per_bin_unless_given"),
-    "test_centres.py": ("test_self_labels_teach_the_net_the_models_own_labels_of_the_users_frames",
-                        "test_self_labels_from_a_recording_label_all_its_frames",
-                        "test_a_short_training_run_segments_held_out_piles_better_and_ships_in_"
-                        "the_model"),
-    "test_label_head.py": ("test_a_short_training_run_explains_held_out_scenes_better_and_ships_"
-                           "in_the_model",),
-    "test_distill.py": ("test_the_users_own_frames_are_reconstructed_better_with_their_loss",
-                        "test_a_wider_encoder_widened_from_the_source_trains_and_segments",
-                        "test_distillation_brings_the_encoder_towards_its_refined_poses",
-                        "test_a_narrower_encoder_pruned_from_the_source_learns_the_refined_poses"),
-    "test_pilematch.py": ("test_piles_choose_the_head_the_frames_were_made_of_and_a_search_resumes",
-                          "test_a_uniform_rod_gets_the_flange_its_frames_were_made_of",
-                          "test_the_card_draws_the_piles_template_beside_the_models_own",
-                          "test_a_nut_s_piles_choose_a_ring_with_its_hole_over_a_solid_disc",
-                          "test_a_cone_s_piles_choose_a_frustum_with_its_taper_over_a_straight_"
-                          "disc"),
-    "test_models.py": ("test_card_run_records_another_training_run_on_the_cards_test_split",
-                       "test_card_shape_adds_the_learned_template_against_the_true_part"),
-    "test_template.py": ("test_exact_height_map_matches_ray_casting",
-                         "test_short_training_run_moves_a_box_template_towards_the_true_block"),
-    # nodes over DDS (serial): the fast tier keeps their start-up, error and replay tests
-    "test_picks.py": ("test_picks_over_dds_match_the_simulator",
-                      "test_without_a_matching_camera_info_labels_go_on_and_diagnostics_say_why",
-                      "test_camera_info_is_taken_beside_a_remapped_depth_topic"),
-    "test_segmenter.py": ("test_tilted_realsense_recording_is_segmented_end_to_end",
-                          "test_quality_file_keeps_the_models_own_vote_and_a_training_checkpoint_"
-                          "runs_realtime",
-                          "test_replayed_bag_is_segmented_with_headers_masks_and_diagnostics",
-                          "test_shipped_parameter_files_set_the_segmenter",
-                          "test_an_incompatible_model_file_stops_the_node",
-                          "test_bad_frames_are_counted_and_skipped_and_the_node_keeps_serving"),
-    "test_launch.py": ("test_parameters_the_launch_files_set_are_declared_by_the_nodes",),
-    "test_dds.py": ("test_large_frames_arrive_between_processes_with_the_profile",),
-    "test_bin_replay.py": ("test_simulated_frames_arrive_over_dds",),
-    "test_selffit.py": ("test_self_fit_teaches_the_encoder_its_slow_labels_and_the_card_says_so",),
-    "test_shapefit.py": ("test_a_short_fit_moves_the_box_towards_the_true_block_and_is_not_redone",
-                         "test_shape_fit_with_no_iterations_writes_the_discs_a_simulator_drops"),
-    "test_sizing.py": ("test_the_loop_sizes_the_rod_then_chooses_its_scale_and_resumes",),
-    "test_segment_eval.py": ("test_eval_cli_writes_table_json_and_png",
-                             "test_segmenter_on_a_full_resolution_frame"),
-    "test_unlabelled.py": ("test_label_free_export_of_a_data_set",
-                           "test_export_with_a_labels_topic_adds_miou"),
-    "test_segmenter_cell.py": ("test_the_bin_check_warns_on_another_part_and_not_on_the_models_own",
-                               "test_lifecycle_is_driven_from_another_process",
-                               "test_enable_pauses_and_segment_next_segments_one_frame_while_"
-                               "paused"),
+    "test_loop.py": (
+        "test_a_tiny_loop_explains_held_out_scenes_of_its_shape_better_than_its_starting_point",
+        "test_one_command_from_a_bag_learns_the_shape_then_ships_a_model",
+        "test_the_loop_piles_a_nut_with_its_hole_where_the_grid_asks_for_one",
+        "test_the_loop_piles_a_disc_template_matched_to_the_frames_and_keeps_the_rod",
+        "test_the_loop_fits_a_convex_template_from_the_rod_and_piles_and_ships_it",
+        "test_the_default_loop_chooses_the_template_family_then_piles_it_once",
+        "test_loop_refuses_a_missing_model_and_frames_of_another_camera",
+    ),
+    "test_family.py": (
+        "test_a_block_s_frames_choose_a_box_over_the_rod_and_the_taper_and_resume",
+    ),
+    "test_train.py": (
+        "test_tiny_training_run_improves_reconstruction",
+        "test_killed_run_resumes_from_its_last_checkpoint",
+        "test_ddp_two_processes_gloo_identical_weights",
+        "test_n_is_the_data_sets_parts_per_bin_unless_given",
+    ),
+    "test_centres.py": (
+        "test_self_labels_teach_the_net_the_models_own_labels_of_the_users_frames",
+        "test_self_labels_from_a_recording_label_all_its_frames",
+        "test_a_short_training_run_segments_held_out_piles_better_and_ships_in_the_model",
+    ),
+    "test_label_head.py": (
+        "test_a_short_training_run_explains_held_out_scenes_better_and_ships_in_the_model",
+    ),
+    "test_distill.py": (
+        "test_the_users_own_frames_are_reconstructed_better_with_their_loss",
+        "test_a_wider_encoder_widened_from_the_source_trains_and_segments",
+        "test_distillation_brings_the_encoder_towards_its_refined_poses",
+        "test_a_narrower_encoder_pruned_from_the_source_learns_the_refined_poses",
+        "test_distill_refuses_a_learned_renderer_and_a_missing_checkpoint",
+    ),
+    "test_pilematch.py": (
+        "test_piles_choose_the_head_the_frames_were_made_of_and_a_search_resumes",
+        "test_a_uniform_rod_gets_the_flange_its_frames_were_made_of",
+        "test_the_card_draws_the_piles_template_beside_the_models_own",
+        "test_a_nut_s_piles_choose_a_ring_with_its_hole_over_a_solid_disc",
+        "test_a_cone_s_piles_choose_a_frustum_with_its_taper_over_a_straight_disc",
+    ),
+    "test_models.py": (
+        "test_card_run_records_another_training_run_on_the_cards_test_split",
+        "test_card_shape_adds_the_learned_template_against_the_true_part",
+        "test_card_settings_ships_other_settings_and_measures_the_card_anew",
+    ),
+    "test_template.py": (
+        "test_exact_height_map_matches_ray_casting",
+        "test_short_training_run_moves_a_box_template_towards_the_true_block",
+    ),
+    "test_picks.py": (
+        "test_picks_over_dds_match_the_simulator",
+        "test_without_a_matching_camera_info_labels_go_on_and_diagnostics_say_why",
+        "test_camera_info_is_taken_beside_a_remapped_depth_topic",
+    ),
+    "test_segmenter.py": (
+        "test_tilted_realsense_recording_is_segmented_end_to_end",
+        "test_quality_file_keeps_the_models_own_vote_and_a_training_checkpoint_runs_realtime",
+        "test_replayed_bag_is_segmented_with_headers_masks_and_diagnostics",
+        "test_shipped_parameter_files_set_the_segmenter",
+        "test_an_incompatible_model_file_stops_the_node",
+        "test_bad_frames_are_counted_and_skipped_and_the_node_keeps_serving",
+        "test_replayed_bag_is_segmented_better_than_kmeans",
+    ),
+    "test_launch.py": (
+        "test_parameters_the_launch_files_set_are_declared_by_the_nodes",
+    ),
+    "test_dds.py": (
+        "test_large_frames_arrive_between_processes_with_the_profile",
+    ),
+    "test_bin_replay.py": (
+        "test_simulated_frames_arrive_over_dds",
+    ),
+    "test_selffit.py": (
+        "test_self_fit_teaches_the_encoder_its_slow_labels_and_the_card_says_so",
+    ),
+    "test_shapefit.py": (
+        "test_a_short_fit_moves_the_box_towards_the_true_block_and_is_not_redone",
+        "test_shape_fit_with_no_iterations_writes_the_discs_a_simulator_drops",
+    ),
+    "test_sizing.py": (
+        "test_the_loop_sizes_the_rod_then_chooses_its_scale_and_resumes",
+    ),
+    "test_segment_eval.py": (
+        "test_eval_cli_writes_table_json_and_png",
+        "test_segmenter_on_a_full_resolution_frame",
+    ),
+    "test_unlabelled.py": (
+        "test_label_free_export_of_a_data_set",
+        "test_export_with_a_labels_topic_adds_miou",
+        "test_check_writes_a_sheet_and_prints_the_measures",
+    ),
+    "test_segmenter_cell.py": (
+        "test_the_bin_check_warns_on_another_part_and_not_on_the_models_own",
+        "test_lifecycle_is_driven_from_another_process",
+        "test_enable_pauses_and_segment_next_segments_one_frame_while_paused",
+    ),
+    "test_dataset.py": (
+        "test_existing_output_and_bad_arguments",
+    ),
+    "test_compressed_depth.py": (
+        "test_cli_bag_info_and_check_on_a_compressed_bag",
+    ),
+    "test_cli.py": (
+        "test_ship_refuses_a_folder_without_a_model_or_a_recipe_and_a_bad_name",
+        "test_ship_puts_a_runs_model_and_recipe_in_place_whole_and_only_once",
+    ),
+    "test_bags.py": (
+        "test_cli_errors_are_one_line_without_traceback",
+    ),
 }
 
 
