@@ -133,8 +133,8 @@ LONGEST_FIRST = ("test_loop.py", "test_family.py", "test_distill.py", "test_trai
 
 
 # The tests that each took nine seconds or more in the last full run (training, simulation, a
-# whole loop, several CLI processes): marked `slow`, so that the fast tier (`make test-fast`, `-m "not slow"`) runs in under 3 minutes for
-# every change; `make test` (CI) runs them all.
+# whole loop, several CLI processes): marked `slow`, so that the fast tier (`make test-fast`,
+# `-m "not slow"`) runs in about 3 minutes for every change; `make test` (CI) runs them all.
 SLOW = {
     "test_loop.py": (
         "test_a_tiny_loop_explains_held_out_scenes_of_its_shape_better_than_its_starting_point",
