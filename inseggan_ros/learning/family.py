@@ -36,7 +36,6 @@ each candidate's folder; a killed choice resumes candidate by candidate.
 from __future__ import annotations
 
 import json
-import shutil
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -48,7 +47,7 @@ from tqdm import tqdm
 
 from inseggan_ros.core import checkpoint
 from inseggan_ros.evaluation.evaluate import write_json
-from inseggan_ros.learning.pilematch import heights
+from inseggan_ros.learning.pilematch import heights, pile_frames
 from inseggan_ros.learning.shapefit import ShapeFitConfig, _recon, fit_shape, hold_out
 from inseggan_ros.runtime.model import RING_WALLS, build_models
 
@@ -145,17 +144,9 @@ def held_out_l1(file: Path, val: np.ndarray) -> float:
 def pile_distance(file: Path, data, meta, view: dict, folder: Path, ref: np.ndarray,
                   cfg: FamilyConfig) -> float:
     """`cfg.piles` scenes of the model `file`'s template simulated as the user's frames were
-    taken and cut as they are -> the W1 distance of their heights to `ref` (the user's)."""
-    from inseggan_ros.data import datasets as data_mod
-    from inseggan_ros.learning.piles import pile_scene
-    from inseggan_ros.sim.dataset import DatasetSpec, generate
-
-    shutil.rmtree(folder, ignore_errors=True)  # of a choice killed while simulating it
-    spec = DatasetSpec(pile_scene(data, meta, file), {"train": 0, "val": 0, "test": cfg.piles},
-                       seed=cfg.seed)
-    generate(spec, folder, workers=cfg.workers, progress=False)
-    x = data_mod.load_sim_split(folder, "test", **view)["x"]
-    shutil.rmtree(folder)
+    taken and cut as they are (`pilematch.pile_frames`) -> the W1 distance of their heights
+    to `ref` (the user's)."""
+    x = pile_frames(file, data, meta, view, folder, cfg.piles, cfg.seed, cfg.workers)
     return float(wasserstein_distance(heights(x), ref))
 
 
@@ -218,16 +209,16 @@ def choose(rod_file, frames: np.ndarray, data, meta, view: dict, out,
         except ValueError as e:  # a rod too short for two discs, a ring's wall too thin
             rows[family] = {"family": family, "skipped": str(e)}
             continue
+        made: dict[float, Path] = {}  # each scale's model, written once
 
-        def measure(v: float, file=file, family=family) -> float:
-            made = scaled_model(file, v, out / family / f"scale{v:g}.pt")
-            return pile_distance(made, data, meta, view, out / family / "piles", ref, cfg)
+        def measure(v: float, file=file, family=family, made=made) -> float:
+            made[v] = scaled_model(file, v, out / family / f"scale{v:g}.pt")
+            return pile_distance(made[v], data, meta, view, out / family / "piles", ref, cfg)
 
         w1 = scale_search(measure, cfg)
         scale = min(w1, key=w1.get)
         row = {"family": family, "model": str(file), "rod": str(rod_file), "config": config,
-               "scale": scale, "part": str(scaled_model(file, scale,
-                                                        out / family / f"scale{scale:g}.pt")),
+               "scale": scale, "part": str(made[scale]),
                "recon_l1": held_out_l1(file, val), "pile_w1": w1[scale],
                "pile_w1_by_scale": {f"{v:g}": round(d, 5) for v, d in w1.items()},
                "seconds": round(time.monotonic() - t0, 1)}

@@ -360,6 +360,27 @@ def disc_model(rod_state: dict, shape_cfg, discs: Discs, file, source="checkpoin
         "encoder": {k: v.detach().cpu() for k, v in E.state_dict().items()}})
 
 
+def pile_frames(file, data, meta, view: dict, folder: Path, count: int, seed: int,
+                workers: int = 1) -> np.ndarray:
+    """`count` piles of the model `file`'s template simulated as the user's frames were taken
+    (`data`, `meta`: `piles.pile_scene`) into `folder`, cut as those frames are (`view`:
+    `piles.pile_view`) -> their frames (N, 1, H, W). The folder is removed after: the measure
+    made of the frames is kept, not the piles."""
+    import shutil
+
+    from inseggan_ros.data import datasets as data_mod
+    from inseggan_ros.learning.piles import pile_scene
+    from inseggan_ros.sim.dataset import DatasetSpec, generate
+
+    shutil.rmtree(folder, ignore_errors=True)  # of a search killed while simulating it
+    spec = DatasetSpec(pile_scene(data, meta, file), {"train": 0, "val": 0, "test": count},
+                       seed=seed)
+    generate(spec, folder, workers=workers, progress=False)
+    x = data_mod.load_sim_split(folder, "test", **view)["x"]
+    shutil.rmtree(folder)
+    return x
+
+
 def search(rod_file, shape_cfg, data, user_x: np.ndarray, out,
            cfg: PileMatchConfig = PileMatchConfig(), progress: bool = True,
            report: Callable | None = None) -> dict:
@@ -368,13 +389,10 @@ def search(rod_file, shape_cfg, data, user_x: np.ndarray, out,
     were taken, `data` a simulated data set (its camera, noise and bin) or a
     `loop.BagFrames` (the camera and bin estimated from the bag), and cut as those frames are.
     `report(G)`: a library part's fidelity (`cli._shape_report`), for the record only."""
-    import shutil
-
     from inseggan_ros.core import checkpoint
-    from inseggan_ros.data import datasets as data_mod
-    from inseggan_ros.learning.piles import BagFrames, pile_scene, pile_view
+    from inseggan_ros.learning.piles import BagFrames, pile_view
     from inseggan_ros.learning.shapefit import start_discs
-    from inseggan_ros.sim.dataset import DatasetSpec, generate, load_meta
+    from inseggan_ros.sim.dataset import load_meta
 
     rod_file = Path(rod_file)
     state = checkpoint.load(rod_file)
@@ -391,13 +409,7 @@ def search(rod_file, shape_cfg, data, user_x: np.ndarray, out,
         return disc_model(state, shape_cfg, discs, file, rod_file, hole, taper)
 
     def piles(file: Path, folder: Path, count: int, seed: int) -> np.ndarray:
-        shutil.rmtree(folder, ignore_errors=True)  # of a search killed while simulating it
-        spec = DatasetSpec(pile_scene(data, meta, file), {"train": 0, "val": 0, "test": count},
-                           seed=seed)
-        generate(spec, folder, workers=cfg.workers, progress=False)
-        x = data_mod.load_sim_split(folder, "test", **view)["x"]
-        shutil.rmtree(folder)  # the distance is kept, the piles are not needed again
-        return x
+        return pile_frames(file, data, meta, view, folder, count, seed, cfg.workers)
 
     def fidelity(file: Path) -> dict:
         f = report(build_models(checkpoint.load(file), file)[1])
