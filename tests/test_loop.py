@@ -405,12 +405,17 @@ def test_the_default_loop_chooses_the_template_family_then_piles_it_once(tmp):
     out = tmp / "loop"
     args = ["loop", "--model", MODEL, "--bag", REPO / "bags" / "wooden_block_realsense",
             "--instances", "4", "--out", out, "--scenes", "12", "--val-scenes", "4",
-            "--centre-iterations", "8", "--size-rounds", "1", "--family-piles", "6",
+            "--centre-iterations", "8", "--minutes", "30", "--size-rounds", "1",
+            "--family-piles", "6",
             "--family-iterations", "4", "--workers", "2", "--quiet"]
     p = run_cli(*args, check=True, timeout=900)
     summary = json.loads((out / "summary.json").read_text())
     assert list(summary["seconds"]) == ["scale1", "family", "simulate", "centres", "export"]
     card = json.loads((out / "model" / "card.json").read_text())
+    # the time budget: the family and the centre votes had their shares; the card says so
+    assert card["budget"] == summary["budget"] and card["budget"]["minutes"] == 30
+    assert set(card["budget"]["shares_minutes"]) == {"family", "centres"}
+    assert "time budget 30 min" in p.stdout
     fam = card["template_family"]
     assert fam == summary["template_family"]
     assert [r["family"] for r in fam["candidates"]] == \
@@ -426,6 +431,7 @@ def test_the_default_loop_chooses_the_template_family_then_piles_it_once(tmp):
     assert (out / "family" / "family.png").is_file()
     readme = (out / "model" / "README.md").read_text()
     assert f"**Template family:** {kept['family']} kept" in readme and "Verdict" in readme
+    assert "**Time budget:** 30 min" in readme
     # the piles: simulated once, of the kept template (the fitted convex one becomes the model;
     # discs, a ring or a taper are the piles' part and the model stays the rod)
     # at the scale whose piles looked most like the frames

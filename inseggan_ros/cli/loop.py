@@ -15,6 +15,7 @@ from pathlib import Path
 
 from inseggan_ros.cli import common, recipes
 from inseggan_ros.evaluation.vote_scale import SCALES as VOTE_SCALES
+from inseggan_ros.learning.budget import DEFAULT_MINUTES
 from inseggan_ros.learning.family import FAMILIES, FamilyConfig
 
 SUMMARY = "a recording to a model: learn the part's shape from the unlabelled frames, finish " \
@@ -54,6 +55,10 @@ def _user_options(p) -> None:
                    help="run directory (required): a killed run started again with the same "
                         "--out resumes where it stopped, stage by stage")
     p.add_argument("--name", default="model", help="the exported model's name (model)")
+    p.add_argument("--minutes", type=float, default=DEFAULT_MINUTES, metavar="MIN",
+                   help="the whole run's time budget: the shape stage, the template family's "
+                        "candidates and the centre votes get their shares of it, and the card "
+                        f"says what it cut ({DEFAULT_MINUTES:g}; 0: none)")
     p.add_argument("--train-minutes", type=float, metavar="MIN",
                    help="the shape stage's budget in minutes (without --model; 600 iterations "
                         "when neither this nor --train-iterations is given)")
@@ -260,7 +265,7 @@ def loop_config(opts: dict):
              "user_weight", "head_iterations", "centre_iterations", "centre_teacher",
              "self_frames", "self_iterations", "self_settings", "export_settings",
              "size_by_thickness", "size_rounds", "size_keep_length", "vote_scales",
-             "match_pieces", "match_walls")
+             "match_pieces", "match_walls", "minutes")
     cfg = LoopConfig(**{k: opts[k] for k in names})
     grid = common.pile_grid(argparse.Namespace(**opts))
     if opts["match_piles"]:
@@ -384,6 +389,11 @@ def report(summary: dict, out: Path, seconds: float) -> None:
         print("WARNING: this model does not explain its frames (label-free verdict, on its "
               "card; `inseggan ship` refuses it without --ship-failing):\n  "
               + "\n  ".join(v["problems"]))
+    b = summary.get("budget")
+    if b and b["minutes"]:
+        print(f"time budget {b['minutes']:g} min: {b['used_minutes']:g} used"
+              + (" (over it)" if b["over"] else "")
+              + ("; cut: " + "; ".join(b["cut"]) if b["cut"] else "; nothing cut"))
     if summary.get("vote_scale"):
         from inseggan_ros.evaluation.vote_scale import describe
 

@@ -510,7 +510,7 @@ def label_free_markdown(card: dict) -> str:
         f"{m['composite']}, nf {m['nf']}, latent {m['latent_dim']}",
         f"* **Training:** {trained}; {card['iterations']} iterations, {card['wall_minutes']} min "
         f"wall time",
-        *_distill_line(card), *_recipe_line(card), *_family_line(card),
+        *_distill_line(card), *_recipe_line(card), *_family_line(card), *_budget_line(card),
         f"* **Checked on:** {src['description']}: {src['frames']} frames. tau calibrated without "
         f"labels on {cal['frames']} frames{_frames_text(cal)}, measured on {held['frames']} "
         f"held-out frames{_frames_text(held)}: {src['held_out_rule']}",
@@ -548,6 +548,16 @@ def _family_line(card: dict) -> list[str]:
     return [f"* **Template family:** {fam['kept']} kept, its piles at x{fam['scale']:g}, of: "
             f"{rows}; the score is the piles' heights' W1 to the frames over the best plus the "
             "held-out reconstruction over the best (`family.png` in the loop's folder)"]
+
+
+def _budget_line(card: dict) -> list[str]:
+    """The README's line on the loop's time budget, where it had one."""
+    b = card.get("budget")
+    if not b or not b["minutes"]:
+        return []
+    return [f"* **Time budget:** {b['minutes']:g} min, {b['used_minutes']:g} used to the export"
+            + (" (over it)" if b["over"] else "") + "; "
+            + ("cut: " + "; ".join(b["cut"]) if b["cut"] else "nothing cut")]
 
 
 def _verdict_lines(card: dict) -> list[str]:

@@ -88,6 +88,30 @@ def miou_of(pred: np.ndarray, gt: np.ndarray) -> float:
     return float(mean_miou(miou_batch(pred, gt)))
 
 
+def step_seconds(cfg: CentreConfig = CentreConfig(), size: int = 64, n: int = 5,
+                 steps: int = 4) -> float:
+    """Seconds one of `train_net`'s iterations takes on this machine: `steps` of them timed,
+    after one to warm up, on a batch of `cfg.batch` empty frames of `size` x `size` with a
+    square part each (the time does not depend on what the frames hold). What a time budget
+    turns into iterations (`budget.centre_iterations`)."""
+    torch.manual_seed(cfg.seed)
+    net = CentreNet(cfg.width)
+    opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
+    X = torch.zeros(cfg.batch, 2, size, size)
+    L = torch.zeros(cfg.batch, size, size, dtype=torch.int64)
+    L[:, size // 4:size // 2, size // 4:size // 2] = 1
+    X[:, 1] = (L > 0).float()
+    t0 = 0.0
+    for k in range(steps + 1):
+        if k == 1:
+            t0 = time.perf_counter()
+        l_heat, l_off = loss_terms(net(X), L, n)
+        opt.zero_grad(set_to_none=True)
+        (l_heat + l_off).backward()
+        opt.step()
+    return (time.perf_counter() - t0) / steps
+
+
 def train_net(train: dict, val: dict, n: int, out, cfg: CentreConfig = CentreConfig(),
               progress: bool = True) -> dict:
     """A `CentreNet` fitted to labelled frames: `train` and `val` = {"x", "fg", "labels"}

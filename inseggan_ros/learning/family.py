@@ -36,6 +36,7 @@ each candidate's folder; a killed choice resumes candidate by candidate.
 from __future__ import annotations
 
 import json
+import math
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -63,6 +64,7 @@ FAMILIES: dict[str, ShapeFitConfig | None] = {
 }
 
 MAX_SCALE = 4.0  # of a candidate's template, at most
+TIME_SKIP = "not made: the time budget"  # a candidate's row where its share ran out
 
 
 @dataclass(frozen=True)
@@ -150,13 +152,16 @@ def pile_distance(file: Path, data, meta, view: dict, folder: Path, ref: np.ndar
     return float(wasserstein_distance(heights(x), ref))
 
 
-def scale_search(measure, cfg: FamilyConfig) -> dict[float, float]:
+def scale_search(measure, cfg: FamilyConfig, more=lambda: True) -> dict[float, float]:
     """`measure(scale)` (a pile distance) at each of `cfg.scales`, then, while the best is at
-    an end of what was measured, one more step beyond it (the ends' own ratio), at most
-    `cfg.extend` steps: a template learned too small or too large is still sized, and a grid
-    that brackets the best costs nothing more. -> {scale: distance}."""
+    an end of what was measured (and `more()`: the time budget holds another), one more step
+    beyond it (the ends' own ratio), at most `cfg.extend` steps: a template learned too small
+    or too large is still sized, and a grid that brackets the best costs nothing more.
+    -> {scale: distance}."""
     w1 = {v: measure(v) for v in cfg.scales}
     for _ in range(cfg.extend):
+        if not more():
+            break
         lo, hi = min(w1), max(w1)
         best = min(w1, key=w1.get)
         if len(w1) < 2 or best not in (lo, hi):
@@ -177,13 +182,19 @@ def combined(rows: list[dict]) -> list[float]:
 
 
 def choose(rod_file, frames: np.ndarray, data, meta, view: dict, out,
-           cfg: FamilyConfig = FamilyConfig(), progress: bool = True) -> dict:
+           cfg: FamilyConfig = FamilyConfig(), progress: bool = True,
+           seconds: float = math.inf) -> dict:
     """Every family of `cfg` made from the rod model `rod_file`, piled and scored against the
     user's `frames` ((N, 1, H, W) prepared, no label; `data`, `meta` and `view` as the loop's
     piles take them) -> the choice (also out/family.json): "rows" (each candidate: family,
     model, its best scale and the model at it ("part"), pile_w1 there, recon_l1, score,
     seconds), "kept" (the family), "model" (its file as made) and "part" (at its scale: what
     the piles are of).
+    Within `seconds` (the loop's time budget's share): the candidates are made in
+    `cfg.families`' order, and one whose expected time (the mean of those made so far) no
+    longer fits is not made (its row says so), nor does a scale search step past the grid's
+    end once its candidate's share (the time left over the candidates left) is spent. The
+    first candidate is always made.
     Skipped when out/family.json holds a choice of the same config and rod."""
     out = Path(out)
     config = json.loads(json.dumps(asdict(cfg)))
@@ -199,11 +210,16 @@ def choose(rod_file, frames: np.ndarray, data, meta, view: dict, out,
     log = out / "candidates.jsonl"
     rows = {r["family"]: r for r in map(json.loads, log.read_text().splitlines())
             if r["rod"] == str(rod_file) and r["config"] == config} if log.is_file() else {}
-    for family in tqdm(cfg.families, desc="template family", unit="family",
-                       disable=not progress):
+    deadline, spent = time.monotonic() + seconds, []
+    for k, family in enumerate(tqdm(cfg.families, desc="template family", unit="family",
+                                    disable=not progress)):
         if family in rows:
             continue
         t0 = time.monotonic()
+        if spent and t0 + sum(spent) / len(spent) > deadline:
+            rows[family] = {"family": family, "skipped": TIME_SKIP}
+            continue
+        own = t0 + (deadline - t0) / (len(cfg.families) - k)  # this candidate's share's end
         try:
             file = make_candidate(family, Path(rod_file), x, val, out / family, cfg)
         except ValueError as e:  # a rod too short for two discs, a ring's wall too thin
@@ -215,7 +231,7 @@ def choose(rod_file, frames: np.ndarray, data, meta, view: dict, out,
             made[v] = scaled_model(file, v, out / family / f"scale{v:g}.pt")
             return pile_distance(made[v], data, meta, view, out / family / "piles", ref, cfg)
 
-        w1 = scale_search(measure, cfg)
+        w1 = scale_search(measure, cfg, more=lambda own=own: time.monotonic() < own)
         scale = min(w1, key=w1.get)
         row = {"family": family, "model": str(file), "rod": str(rod_file), "config": config,
                "scale": scale, "part": str(made[scale]),
@@ -225,6 +241,7 @@ def choose(rod_file, frames: np.ndarray, data, meta, view: dict, out,
         with open(log, "a") as f:
             f.write(json.dumps(row) + "\n")
         rows[family] = row
+        spent.append(row["seconds"])
     return _decide(rows, rod_file, config, out)
 
 

@@ -78,6 +78,7 @@ Writes out/summary.json with the time of each stage.
 from __future__ import annotations
 
 import json
+import math
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -92,6 +93,7 @@ from inseggan_ros.evaluation.vote_scale import SCALES as VOTE_SCALES
 from inseggan_ros.evaluation.modelcard import markdown
 from inseggan_ros.evaluation.verdict import verdict
 from inseggan_ros.runtime.model import build_models
+from inseggan_ros.learning.budget import DEFAULT_MINUTES, Budget
 from inseggan_ros.learning.family import FamilyConfig  # noqa: F401 (LoopConfig's type)
 from inseggan_ros.learning.piles import (  # noqa: F401  (the loop's frames and piles)
     BagFrames, _as_list, _model_file, _same_view, pile_scene, pile_view)
@@ -169,11 +171,14 @@ class LoopConfig:
     # (the model stays the rod, as with `match_piles`); the piles are of the kept one at the
     # scale whose piles look most like the frames. Only without an
     # encoder stage (`iterations` 0), for a rod, with neither `convex` nor `match_piles`
+    minutes: float = DEFAULT_MINUTES  # the whole run's time budget (`budget.Budget`: the shape
+    # stage, the family choice and the centre votes get their shares of it; 0 = none)
 
     def __post_init__(self):
         if self.self_frames < 0:
             raise ValueError(f"self_frames {self.self_frames!r} invalid; valid: >= 0 (0 = no "
                              "self-fitting stage)")
+        Budget(self.minutes)  # raises with what is valid
         for key in ("scenes", "val_scenes", "workers", "user_frames", "self_iterations"):
             if getattr(self, key) < 1:
                 raise ValueError(f"{key} {getattr(self, key)!r} invalid; valid: >= 1")
@@ -297,7 +302,7 @@ def label_head_stage(model: Path, sim: Path, data, out: Path, cfg: LoopConfig,
 
 
 def centres_stage(model: Path, sim: Path, view: dict, data, out: Path, cfg: LoopConfig,
-                  progress: bool = True) -> Path:
+                  progress: bool = True, budget: Budget | None = None) -> Path:
     """Stage 4b: centre votes (`centres.fit`) for the model on the last simulated piles, cut
     as the user's frames are (`view`), or with `cfg.centre_teacher` "self-labels" on the user's
     training frames (a data set's train split, a bag's frames before the held-out cut)
@@ -307,8 +312,9 @@ def centres_stage(model: Path, sim: Path, view: dict, data, out: Path, cfg: Loop
 
     if (out / "model.pt").is_file():
         return out / "model.pt"
-    ccfg = CentreConfig(iterations=cfg.centre_iterations, seed=cfg.seed,
-                        eval_every=max(1, min(500, cfg.centre_iterations)))
+    iterations = _centre_iterations(cfg, out, budget)
+    ccfg = CentreConfig(iterations=iterations, seed=cfg.seed,
+                        eval_every=max(1, min(500, iterations)))
     if cfg.centre_teacher == "piles":
         return Path(fit(model, sim, out, ccfg, progress=progress,
                         as_given=view.get("as_given", False))["model"])
@@ -320,6 +326,30 @@ def centres_stage(model: Path, sim: Path, view: dict, data, out: Path, cfg: Loop
     held_out = max(1, min(200, len(frames["x"]) // 5))
     return Path(fit(model, source, out, ccfg, progress=progress, self_labels=True,
                     held_out=held_out, workers=cfg.workers, user_frames=frames)["model"])
+
+
+def _centre_iterations(cfg: LoopConfig, out: Path, budget: Budget | None) -> int:
+    """The centre votes' iterations: `cfg.centre_iterations`, or fewer where the budget's share
+    does not hold them at the seconds an iteration takes here (`centres.step_seconds`). Chosen
+    once and kept in out/budget.json, so that a killed stage resumes the same schedule."""
+    from inseggan_ros.learning import budget as budget_mod
+    from inseggan_ros.learning.centres import CentreConfig, step_seconds
+
+    kept = out / "budget.json"
+    if kept.is_file():
+        iterations = json.loads(kept.read_text())["iterations"]
+    elif budget is None or not budget.bounded:
+        return cfg.centre_iterations
+    else:
+        seconds = budget.share("centres")
+        step = step_seconds(CentreConfig(seed=cfg.seed))
+        iterations = budget_mod.centre_iterations(cfg.centre_iterations, seconds, step)
+        out.mkdir(parents=True, exist_ok=True)
+        write_json(kept, {"iterations": iterations, "asked": cfg.centre_iterations,
+                          "share_s": round(seconds, 1), "step_s": round(step, 4)})
+    if budget is not None and iterations < cfg.centre_iterations:
+        budget.cut(f"centre votes: {iterations} of {cfg.centre_iterations} iterations")
+    return iterations
 
 
 def self_stage(model: Path, data, out: Path, cfg: LoopConfig, progress: bool = True) -> Path:
@@ -672,9 +702,11 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
                   + (thickness != "off") + size_rounds,
                   desc="loop", unit="stage", disable=not progress,
                   position=0)
-    tick = _stage_timer(seconds, stages)
+    tick = _stage_timer(seconds, stages, _budget(cfg, model is None))
     if model is None:
+        train_cfg = _shape_budget(train_cfg, tick.budget)
         model = tick("shape", learn_shape, data, out / "shape", train_cfg, progress)
+        _shape_cut(out / "shape", train_cfg, tick.budget)
     file = _model_file(model).resolve()
     if meta is not None:
         _same_view(file, data)
@@ -694,7 +726,8 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
         finished, sim, encoder, rounds = _scale_then_simulate(
             file, data, meta, view, out, cfg, size_rounds, tick, stages, progress, part)
     finished = _finishing_stages(finished, sim, view, data, out, cfg, tick, progress)
-    card = tick("export", _export_stage, finished, sim, view, data, cfg, out, camera, recipe)
+    card = tick("export", _export_stage, finished, sim, view, data, cfg, out, camera, recipe,
+                tick.budget)
     stages.close()
 
     summary = {"model": str(model), "data": str(data) if meta is not None else data.describe(),
@@ -702,7 +735,8 @@ def run(model, data, out, cfg: LoopConfig = LoopConfig(), progress: bool = True,
                "seconds": seconds, "encoder": (json.loads((encoder / "summary.json").read_text())
                                                if cfg.iterations else None),
                "card": str(out / "model" / "card.json"), "tau": card.get("tau"),
-               "vote_scale": card.get("vote_scale"), "verdict": card["verdict"]}
+               "vote_scale": card.get("vote_scale"), "verdict": card["verdict"],
+               "budget": card["budget"]}
     _summarise_templates(summary, out, planned, thickness, size_rounds, rounds, part)
     if card.get("template_family"):
         summary["template_family"] = card["template_family"]
@@ -744,9 +778,36 @@ def _check(model, data, out, cfg: LoopConfig, train_cfg) -> tuple:
     return meta, thickness, resume_plan(thickness, Path(out)), size_rounds
 
 
-def _stage_timer(seconds: dict, stages):
+def _budget(cfg: LoopConfig, learns: bool) -> Budget:
+    """The run's time budget, over the stages it has (`budget.ORDER`)."""
+    return Budget(cfg.minutes, tuple(
+        s for s, on in (("shape", learns), ("family", cfg.family is not None), ("simulate", True),
+                        ("centres", bool(cfg.centre_iterations)), ("export", True)) if on))
+
+
+def _shape_budget(train_cfg, budget: Budget):
+    """The shape stage's config with its share of the budget as its wall-clock limit (where
+    that is tighter than its own)."""
+    from dataclasses import replace
+
+    limit = budget.share("shape") / 60
+    if math.isfinite(limit) and not 0 < train_cfg.max_minutes <= limit:
+        return replace(train_cfg, max_minutes=round(max(limit, 0.5), 2))
+    return train_cfg
+
+
+def _shape_cut(folder: Path, train_cfg, budget: Budget) -> None:
+    """Where the shape stage stopped on its time limit before its iterations: said so."""
+    done = json.loads((folder / "summary.json").read_text())["iterations"]
+    if budget.bounded and done < train_cfg.max_iterations:
+        budget.cut(f"shape stage: {done} of {train_cfg.max_iterations} iterations in its "
+                   f"{train_cfg.max_minutes:g} min")
+
+
+def _stage_timer(seconds: dict, stages, budget: Budget | None = None):
     """tick(name, stage, *args): runs `stage(*args)`, records its seconds under `name` and
-    advances the progress bar by one stage -> the stage's result."""
+    advances the progress bar by one stage -> the stage's result. `tick.budget` is the run's
+    time budget (none where not given)."""
     def tick(name: str, stage, *args):
         t0 = time.monotonic()
         result = stage(*args)
@@ -755,6 +816,7 @@ def _stage_timer(seconds: dict, stages):
         return result
 
     tick.seconds = seconds  # for the stages that record their own (`_simulate_and_fit`)
+    tick.budget = budget if budget is not None else Budget(0.0)
     return tick
 
 
@@ -810,7 +872,7 @@ def _scale_then_simulate(file: Path, data, meta, view: dict, out: Path, cfg: Loo
         file, sim = Path(chosen["start"]), out / f"size_round{k}" / "sim"
     if cfg.family is not None and part is None and _renderer(file) == "spheres":
         choice = tick("family", family_stage, file, data, meta, view, out / "family", cfg,
-                      progress)
+                      progress, tick.budget)
         if choice["kept"] != "rod" or choice["scale"] != 1.0:
             sim = out / "family" / "sim"
             if choice["kept"] in ("box", "bars"):  # a fitted convex template: the model
@@ -831,17 +893,23 @@ def _renderer(file: Path) -> str:
 
 
 def family_stage(file: Path, data, meta, view: dict, out: Path, cfg: LoopConfig,
-                 progress: bool = True) -> dict:
+                 progress: bool = True, budget: Budget | None = None) -> dict:
     """Stage 2c: the template family, chosen among `cfg.family`'s candidates made from the rod
     of `file` by how their piles and renders match the user's training frames (no label
-    read; `family.choose`) -> the choice (out/family.json). Resumes candidate by candidate."""
+    read; `family.choose`), within the budget's share -> the choice (out/family.json).
+    Resumes candidate by candidate."""
     from inseggan_ros.core import checkpoint
     from inseggan_ros.learning import family
     from inseggan_ros.runtime.preprocess import PreprocessConfig
 
     prep = PreprocessConfig.from_dict(checkpoint.load(file)["preprocess_config"])
     frames = _user_frames(data, prep, "train", cfg.family.frames, progress)["x"]
-    return family.choose(file, frames, data, meta, view, out, cfg.family, progress)
+    seconds = math.inf if budget is None else budget.share("family")
+    choice = family.choose(file, frames, data, meta, view, out, cfg.family, progress, seconds)
+    for row in choice["rows"]:
+        if budget is not None and row.get("skipped", "").startswith(family.TIME_SKIP):
+            budget.cut(f"family: {row['family']} {row['skipped']}")
+    return choice
 
 
 def _finishing_stages(finished: Path, sim: Path, view: dict, data, out: Path, cfg: LoopConfig,
@@ -855,7 +923,7 @@ def _finishing_stages(finished: Path, sim: Path, view: dict, data, out: Path, cf
     if cfg.centre_iterations:
         folder = "centres" if cfg.centre_teacher == "piles" else "centres_self"
         finished = tick("centres", centres_stage, finished, sim, view, data, out / folder, cfg,
-                        progress)
+                        progress, tick.budget)
     return finished
 
 
@@ -864,7 +932,7 @@ CARD_FAMILY_KEYS = ("family", "scale", "pile_w1", "pile_w1_by_scale", "recon_l1"
 
 
 def _export_stage(finished: Path, sim: Path, view: dict, data, cfg: LoopConfig, out: Path,
-                  camera, recipe: dict | None) -> dict:
+                  camera, recipe: dict | None, budget: Budget | None = None) -> dict:
     """Stage 5: the vote's scale chosen on the last piles' validation split (where
     `cfg.vote_scales` names scales), then `_export` -> the card."""
     piles = None
@@ -880,6 +948,7 @@ def _export_stage(finished: Path, sim: Path, view: dict, data, cfg: LoopConfig, 
             "candidates": [{k: r[k] for k in CARD_FAMILY_KEYS if k in r}
                            for r in chosen["rows"]]}
     card["verdict"] = verdict(card)  # the label-free judgement `inseggan ship` reads
+    card["budget"] = budget.record() if budget is not None else None
     write_json(out / "model" / "card.json", card)
     readme = out / "model" / "README.md.tmp"  # again, with the verdict and the family; atomic
     readme.write_text(markdown(card))
