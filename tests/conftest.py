@@ -132,9 +132,10 @@ LONGEST_FIRST = ("test_loop.py", "test_family.py", "test_distill.py", "test_trai
                  "test_label_head.py", "test_selffit.py", "test_models.py", "test_template.py")
 
 
-# The tests that each took nine seconds or more in the last full run (training, simulation, a
-# whole loop, several CLI processes): marked `slow`, so that the fast tier (`make test-fast`,
-# `-m "not slow"`) runs in about 3 minutes for every change; `make test` (CI) runs them all.
+# The tests that took nine seconds or more in a full run, and some of six or more (training,
+# simulation, a whole loop, several CLI processes): marked `slow`, so that the fast tier (`make
+# test-fast`, `-m "not slow"`) runs in under 3 minutes for every change; `make test` (CI) runs
+# them all.
 SLOW = {
     "test_loop.py": (
         "test_a_tiny_loop_explains_held_out_scenes_of_its_shape_better_than_its_starting_point",
@@ -153,6 +154,7 @@ SLOW = {
         "test_killed_run_resumes_from_its_last_checkpoint",
         "test_ddp_two_processes_gloo_identical_weights",
         "test_n_is_the_data_sets_parts_per_bin_unless_given",
+        "test_best_checkpoint_is_the_best_validation_even_the_starting_point",
     ),
     "test_centres.py": (
         "test_self_labels_teach_the_net_the_models_own_labels_of_the_users_frames",
@@ -180,6 +182,7 @@ SLOW = {
         "test_card_run_records_another_training_run_on_the_cards_test_split",
         "test_card_shape_adds_the_learned_template_against_the_true_part",
         "test_card_settings_ships_other_settings_and_measures_the_card_anew",
+        "test_quality_settings_segment_the_default_models_bag_better_than_kmeans",
     ),
     "test_template.py": (
         "test_exact_height_map_matches_ray_casting",
@@ -226,11 +229,15 @@ SLOW = {
         "test_label_free_export_of_a_data_set",
         "test_export_with_a_labels_topic_adds_miou",
         "test_check_writes_a_sheet_and_prints_the_measures",
+        "test_a_model_trained_on_a_bag_records_where_its_template_is_in_metres",
+        "test_unlabelled_export_writes_a_model_that_segments",
     ),
     "test_segmenter_cell.py": (
         "test_the_bin_check_warns_on_another_part_and_not_on_the_models_own",
         "test_lifecycle_is_driven_from_another_process",
         "test_enable_pauses_and_segment_next_segments_one_frame_while_paused",
+        "test_picks_in_the_robot_frame_match_the_camera_picks_moved_independently",
+        "test_an_empty_bin_gives_no_instance_and_the_diagnostics_say_so",
     ),
     "test_dataset.py": (
         "test_existing_output_and_bad_arguments",

@@ -15,8 +15,6 @@ from test_bin_replay import stop
 from inseggan_ros.io import bags
 from inseggan_ros.io.bags import BagError, BagWriter, CameraInfo, read_all
 
-pytestmark = pytest.mark.serial  # nodes over real DDS: run alone (setup.cfg)
-
 
 def _frames(n=3, shape=(30, 40), seed=0):
     rng = np.random.default_rng(seed)
@@ -557,6 +555,7 @@ def test_cli_shows_the_warning_once(tmp):
     assert f"5 on {bags.DEPTH_TOPIC}" in p.stderr
 
 
+@pytest.mark.serial  # a node over real DDS: run alone (setup.cfg)
 def test_bin_replay_node_replays_a_cut_bag_and_warns_once(tmp):
     """The node reads bags through read_frames: a cut recording replays (looping, so it is read
     many times) over real DDS to a separate receiver process, with one warning in its log."""

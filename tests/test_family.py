@@ -12,7 +12,8 @@ from conftest import REPO
 from inseggan_ros.core import checkpoint
 from inseggan_ros.learning import family
 from inseggan_ros.learning.piles import BagFrames, pile_view
-from inseggan_ros.learning.shapefit import ShapeFitConfig, convex_from_rod
+from inseggan_ros.learning.family import FAMILIES
+from inseggan_ros.learning.shapefit import ShapeFitConfig, convex_from_rod, rod_box
 from inseggan_ros.runtime.model import build_models
 from inseggan_ros.runtime.preprocess import PreprocessConfig
 from inseggan_ros.sim.learned import template_pieces_units
@@ -108,3 +109,33 @@ def test_a_block_s_frames_choose_a_box_over_the_rod_and_the_taper_and_resume(tmp
     again = family.choose(ROD, x, data, None, pile_view(data, state), out, cfg, progress=False)
     assert again == json.loads((out / "family.json").read_text()) == choice
     assert (out / "family.json").stat().st_mtime_ns == stamp
+
+
+def _inside(G, x: float, y: float) -> bool:
+    """Whether the template holds the point (x, y) halfway up its pieces."""
+    n, d = (t.detach() for t in G.halfspaces())
+    p = torch.tensor([x, y, float(G.centre[0, 2])])
+    return bool(((n @ p) <= d).all(-1).any())
+
+
+@pytest.mark.parametrize("kind", ["tee", "ell"])
+def test_two_bars_start_joined_as_a_t_or_an_l_from_the_rod_s_box(kind):
+    """Copies of one box fitted to T-pieces' frames stayed one slab, so two bars start joined:
+    a bar 2a long across the top, and one as long down from its middle (T) or its end (L), each
+    as wide as the rod's radius, the outline centred on the origin."""
+    state = checkpoint.load(ROD)
+    rod = build_models(state, ROD)[1]
+    a, b, _ = rod_box(rod)
+    w = b / 2
+    _, G, _ = convex_from_rod(state, ShapeFitConfig(pieces=2, walls=4, start=kind))
+    top, bottom = a - w, -a + w / 2  # the top bar's middle; near the second bar's end
+    assert _inside(G, -0.9 * a, top) and _inside(G, 0.9 * a, top)  # the bar across
+    assert not _inside(G, 0.0, top + 2 * w)  # nothing above it
+    stem = 0.0 if kind == "tee" else a - w
+    assert _inside(G, stem, bottom) and _inside(G, stem, 0.0)  # the bar down, whole
+    for x in (-0.9 * a, 0.9 * a):
+        if abs(x - stem) > 2 * w:
+            assert not _inside(G, x, bottom), (kind, x)
+    assert FAMILIES[kind].start == kind and kind not in family.FITTED  # the model keeps the rod
+    with pytest.raises(ValueError, match="start tee is two bars; valid: pieces 2 and walls 4"):
+        ShapeFitConfig(pieces=1, start="tee")

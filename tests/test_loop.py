@@ -12,6 +12,7 @@ import yaml
 from conftest import REPO, run_cli
 
 from inseggan_ros.core import checkpoint
+from inseggan_ros.learning.family import FAMILIES
 from inseggan_ros.learning import losses
 from inseggan_ros.data.datasets import load_bag, load_sim_split
 from inseggan_ros.learning.loop import AUTO_SIZE_ROUNDS, VOTE_SCALES
@@ -419,7 +420,7 @@ def test_the_default_loop_chooses_the_template_family_then_piles_it_once(tmp):
     fam = card["template_family"]
     assert fam == summary["template_family"]
     assert [r["family"] for r in fam["candidates"]] == \
-        ["rod", "box", "bars", "discs", "ring", "taper"]
+        ["rod", "box", "bars", "tee", "ell", "discs", "ring", "taper"]
     scored = [r for r in fam["candidates"] if "skipped" not in r]
     assert {"rod", "box", "bars"} <= {r["family"] for r in scored}
     for r in scored:
@@ -450,7 +451,7 @@ def test_the_default_loop_chooses_the_template_family_then_piles_it_once(tmp):
     want = "convex" if kept["family"] in ("box", "bars") else "spheres"
     assert shipped["model_config"]["renderer"] == want
     recipe = yaml.safe_load((out / "recipe.yaml").read_text())
-    assert recipe["families"] == ["rod", "box", "bars", "discs", "ring", "taper"]
+    assert recipe["families"] == list(FAMILIES)
     done = (out / "family" / "family.json", sim / "meta.json")
     stamps = {f: f.stat().st_mtime_ns for f in done}
     run_cli(*args, check=True, timeout=600)

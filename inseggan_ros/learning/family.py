@@ -9,8 +9,12 @@ sized) rod, and keeps the one whose simulated piles look most like the user's fr
   rod    the rod itself (cylinders, pins, rollers);
   box    one convex piece fitted to reconstruct the frames (`shapefit.fit_shape`: blocks,
          plates);
-  bars   two convex pieces fitted so: a union of convex pieces, for a part that is neither
-         round nor box-like (a T, an L, a bracket);
+  bars   two convex pieces fitted so, started as two copies of the box: a union of convex
+         pieces (a bracket, a plate with a step);
+  tee    two bars joined as a T, each as long as the rod and half as wide (`shapefit.rod_bars`),
+         not fitted: fitted by reconstruction, two bars (started as copies of one box, as a T
+         or as an L alike) became one slab on T-pieces' frames (docs/experiments.md);
+  ell    two bars joined as an L, so;
   discs  the rod's radius profile cut into two flat-ended discs (a head on a shaft);
   ring   one hexagonal disc with a hole (nuts, washers);
   taper  one disc tapering to 0.4 of its radius (cones, stoppers).
@@ -58,11 +62,16 @@ FAMILIES: dict[str, ShapeFitConfig | None] = {
     "rod": None,
     "box": ShapeFitConfig(pieces=1, walls=4, start="box"),
     "bars": ShapeFitConfig(pieces=2, walls=4, start="box"),
+    "tee": ShapeFitConfig(pieces=2, walls=4, start="tee", iterations=0),
+    "ell": ShapeFitConfig(pieces=2, walls=4, start="ell", iterations=0),
     "discs": ShapeFitConfig(pieces=2, walls=8, start="discs", iterations=0),
     "ring": ShapeFitConfig(pieces=1, walls=RING_WALLS, start="discs", hole=0.5, iterations=0),
     "taper": ShapeFitConfig(pieces=1, walls=8, start="discs", taper=0.4, iterations=0),
 }
 
+# the families fitted to the frames by reconstruction: their template becomes the model's (the
+# others are the piles' part only, and the model keeps the rod, as with `match_piles`)
+FITTED = tuple(f for f, c in FAMILIES.items() if c is not None and c.iterations)
 MAX_SCALE = 4.0  # of a candidate's template, at most
 TIME_SKIP = "not made: the time budget"  # a candidate's row where its share ran out
 

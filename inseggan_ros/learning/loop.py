@@ -94,7 +94,7 @@ from inseggan_ros.evaluation.modelcard import markdown
 from inseggan_ros.evaluation.verdict import verdict
 from inseggan_ros.runtime.model import build_models
 from inseggan_ros.learning.budget import DEFAULT_MINUTES, Budget
-from inseggan_ros.learning.family import FamilyConfig  # noqa: F401 (LoopConfig's type)
+from inseggan_ros.learning.family import FITTED, FamilyConfig
 from inseggan_ros.learning.piles import (  # noqa: F401  (the loop's frames and piles)
     BagFrames, _as_list, _model_file, _same_view, pile_scene, pile_view)
 
@@ -167,7 +167,8 @@ class LoopConfig:
     family: "FamilyConfig | None" = None  # stage 2c's candidates (None: no such stage): after
     # the rod is sized, the template family whose piles look most like the user's frames and
     # whose renders explain held-out frames best is kept (`family.choose`): the rod, a fitted
-    # box or two boxes (the model becomes that convex template), or discs, a ring or a taper
+    # box, two boxes, a T or an L of two bars (the model becomes that convex template), or
+    # discs, a ring or a taper
     # (the model stays the rod, as with `match_piles`); the piles are of the kept one at the
     # scale whose piles look most like the frames. Only without an
     # encoder stage (`iterations` 0), for a rod, with neither `convex` nor `match_piles`
@@ -875,7 +876,7 @@ def _scale_then_simulate(file: Path, data, meta, view: dict, out: Path, cfg: Loo
                       progress, tick.budget)
         if choice["kept"] != "rod" or choice["scale"] != 1.0:
             sim = out / "family" / "sim"
-            if choice["kept"] in ("box", "bars"):  # a fitted convex template: the model
+            if choice["kept"] in FITTED:  # a fitted convex template: the model
                 file = Path(choice["model"])
             # the piles are of the kept candidate at its scale; the model stays the rod for
             # discs, a ring, a taper (as with match_piles), and keeps its own size

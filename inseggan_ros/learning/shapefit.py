@@ -53,6 +53,10 @@ from inseggan_ros.runtime.model import (
 from inseggan_ros.runtime.model import build_models
 
 
+BARS = ("tee", "ell")  # the starts of two bars joined (`rod_bars`)
+STARTS = ("box", "discs", *BARS)
+
+
 @dataclass(frozen=True)
 class ShapeFitConfig:
     pieces: int = 1  # convex pieces of the template (`ModelConfig.pieces`)
@@ -67,8 +71,9 @@ class ShapeFitConfig:
     val_frames: int = 100  # reconstruction error reported on these (no label read)
     thickness: str = "data"  # the starting box's height: "data" (the frames' lower-quartile
     # foreground height, where thinner than the rod) or "rod" (the rod's diameter)
-    start: str = "box"  # the starting template: "box" (`rod_box`, every piece a copy) or
-    # "discs" (`rod_discs`: the rod's radius profile as a stack of `pieces` prisms)
+    start: str = "box"  # the starting template: "box" (`rod_box`, every piece a copy),
+    # "discs" (`rod_discs`: the rod's radius profile as a stack of `pieces` prisms), or "tee"
+    # or "ell" (two pieces: two bars from the rod's box, joined as a T or an L: `rod_bars`)
     hole: float = 0.0  # with start "discs": above 0, the one disc (pieces 1) as a hexagonal nut
     # whose hole's faces lie at this fraction of its apothem (`ConvexGenerator.init_ring`: six
     # pieces of 12 walls)
@@ -89,8 +94,11 @@ class ShapeFitConfig:
             raise ValueError(f"walls {self.walls!r} invalid; valid: a multiple of 4, >= 4")
         if self.thickness not in ("data", "rod"):
             raise ValueError(f"thickness {self.thickness!r} invalid; valid: data, rod")
-        if self.start not in ("box", "discs"):
-            raise ValueError(f"start {self.start!r} invalid; valid: box, discs")
+        if self.start not in STARTS:
+            raise ValueError(f"start {self.start!r} invalid; valid: {', '.join(STARTS)}")
+        if self.start in BARS and (self.pieces, self.walls) != (2, 4):
+            raise ValueError(f"start {self.start} is two bars; valid: pieces 2 and walls 4 "
+                             f"(not {self.pieces}, {self.walls})")
         if not 0 <= self.hole < 1:
             raise ValueError(f"hole {self.hole!r} invalid; valid: 0 (no hole) or a fraction "
                              "of the disc's apothem in (0, 1)")
@@ -136,6 +144,24 @@ def rod_box(G: SphereGenerator, x=None) -> tuple[float, float, float]:
             top = float(torch.quantile((x[fg][:1_000_000] + 1) / G.cfg.height_gain, 0.25))
             thick = min(rad, max(top / 2, 2 * CONVEX_MIN_EXTENT))
     return half_len, rad, thick
+
+
+def rod_bars(G: SphereGenerator, kind: str, x=None) -> tuple[list, tuple[float, float]]:
+    """Two bars from the rod's box (`rod_box`: half-length a, radius b, half-thickness c),
+    joined as a T ("tee": the second bar's end at the first's middle) or an L ("ell": at its
+    end), each 2a long and b wide (together about the rod's footprint), 2c high, the whole
+    outline centred on the template's origin -> `ConvexGenerator.init_boxes`' (boxes, joint).
+    The proportions are a start: the fit and the scale search (`family`) size them."""
+    a, b, c = rod_box(G, x)
+    w = max(b / 2, 2 * CONVEX_MIN_EXTENT)
+    a = max(a, 2 * w)
+    if kind not in BARS:
+        raise ValueError(f"bars {kind!r} invalid; valid: {', '.join(BARS)}")
+    x0 = -w if kind == "tee" else a - 2 * w  # the second bar's side
+    shift = a - w  # the outline spans y -(2a - w)..w: its middle to 0
+    boxes = [(-a, a, -w + shift, w + shift, 2 * c),
+             (x0, x0 + 2 * w, -(2 * a - w) + shift, w + shift, 2 * c)]
+    return boxes, (x0 + w, shift)
 
 
 def rod_discs(G: SphereGenerator, pieces: int, walls: int, samples: int = 240
@@ -259,6 +285,8 @@ def convex_from_rod(state: dict, cfg: ShapeFitConfig, source="checkpoint", x=Non
             G.init_ring(discs[0], cfg.hole, 0.0)
         else:
             G.init_discs(piece_order(discs), 0.0, cfg.taper)
+    elif cfg.start in BARS:
+        G.init_boxes(*rod_bars(rod, cfg.start, x if cfg.thickness == "data" else None))
     else:
         G.init_box(rod_box(rod, x if cfg.thickness == "data" else None))
     # without the rod encoder's distillation record: the encoder's next fit (the loop's) is

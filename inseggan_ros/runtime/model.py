@@ -546,6 +546,35 @@ class ConvexGenerator(TemplateGenerator):
         self.extent.copy_(_softplus_inverse((support - CONVEX_MIN_EXTENT + noise).clamp_min(1e-3)))
 
     @torch.no_grad()
+    def init_boxes(self, boxes, joint: tuple[float, float]) -> None:
+        """Piece k: the box `boxes[k]` = (x0, x1, y0, y1, height) standing on the floor, along
+        the template's axes, every piece's centre at `joint` (x, y), halfway up the lowest box:
+        a point inside all of them, so that each piece holds the previous one's centre as it
+        is (`halfspaces` adds no reach) and the boxes keep the outline given. Two bars so make
+        a T or an L (`shapefit.rod_bars`), which a box fitted from copies of one box does not
+        become (two copies fitted to T-pieces' frames stayed one square slab:
+        docs/experiments.md, 2026-12-06, night)."""
+        K, P = self.extent.shape
+        if len(boxes) != K:
+            raise ValueError(f"{len(boxes)} boxes for a template of {K} pieces; valid: {K}")
+        dev = self.extent.device
+        b = torch.tensor([[float(v) for v in box] for box in boxes], device=dev)
+        lo = torch.stack([b[:, 0], b[:, 2], torch.zeros_like(b[:, 0])], 1)
+        hi = torch.stack([b[:, 1], b[:, 3], b[:, 4]], 1)
+        centre = torch.tensor([float(joint[0]), float(joint[1]), float(b[:, 4].min()) / 2],
+                              device=dev).expand(K, 3)
+        if not bool(((centre > lo + CONVEX_MIN_EXTENT) & (centre < hi - CONVEX_MIN_EXTENT)).all()):
+            raise ValueError(f"joint {joint} invalid for boxes {boxes}; valid: a point inside "
+                             f"every box, more than {CONVEX_MIN_EXTENT} from its sides")
+        self.centre.copy_(centre)
+        self.orientation.zero_()
+        self.tilt.zero_()
+        n = self.base  # (P, 3): the prism's directions, the template's own axes here
+        support = ((lo + hi) / 2 - centre) @ n.T + ((hi - lo) / 2) @ n.abs().T  # (K, P)
+        _, reach = self._normals_reach()
+        self.extent.copy_(_softplus_inverse((support - reach - CONVEX_MIN_EXTENT).clamp_min(1e-3)))
+
+    @torch.no_grad()
     def init_discs(self, segments, axis_height: float, taper: float = 1.0) -> None:
         """Piece k: a right prism about the template's x axis (its `walls` around that axis),
         spanning x0_k..x1_k with its walls at distance r_k from the axis, the axis at
