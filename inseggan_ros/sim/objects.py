@@ -209,6 +209,15 @@ def _l_bracket() -> ObjectSpec:
                   ((0.005, 0.020, 0.026), (0.0125, 0.0, 0.0105))], density=7850.0)
 
 
+def _u_clip() -> ObjectSpec:
+    # A flat U of three bars 6 mm thick: a 36 x 8 mm base and two 8 x 29 mm arms at its ends
+    # that reach 1 mm into it (36 x 36 mm overall), aluminium.
+    return _bars("u_clip", "flat aluminium U of three bars (36 x 36 mm, 8 mm wide, 6 mm thick)",
+                 [((0.036, 0.008, 0.006), (0.0, -0.014, 0.0)),
+                  ((0.008, 0.029, 0.006), (-0.014, 0.0035, 0.0)),
+                  ((0.008, 0.029, 0.006), (0.014, 0.0035, 0.0))], density=2700.0)
+
+
 OBJECTS: dict[str, ObjectSpec] = {
     o.name: o for o in (
         _single("cylinder", "solid cylinder, 24 mm diameter x 40 mm",
@@ -223,6 +232,7 @@ OBJECTS: dict[str, ObjectSpec] = {
         _pin_connector(),
         _t_piece(),
         _l_bracket(),
+        _u_clip(),
     )
 }
 
