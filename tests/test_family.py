@@ -104,7 +104,7 @@ def test_a_block_s_frames_choose_a_box_over_the_rod_and_the_taper_and_resume(tmp
     assert rows["box"]["score"] == min(r["score"] for r in rows.values())
     assert choice["part"] == rows["box"]["part"] and Path(choice["part"]).is_file()
     assert checkpoint.load(choice["model"])["model_config"]["renderer"] == "convex"
-    assert (out / "family.png").is_file()
+    assert (out / "family.png").is_file() and (out / "views.png").is_file()
     stamp = (out / "family.json").stat().st_mtime_ns
     again = family.choose(ROD, x, data, None, pile_view(data, state), out, cfg, progress=False)
     assert again == json.loads((out / "family.json").read_text()) == choice
@@ -114,7 +114,7 @@ def test_a_block_s_frames_choose_a_box_over_the_rod_and_the_taper_and_resume(tmp
 def _inside(G, x: float, y: float) -> bool:
     """Whether the template holds the point (x, y) halfway up its pieces."""
     n, d = (t.detach() for t in G.halfspaces())
-    p = torch.tensor([x, y, float(G.centre[0, 2])])
+    p = torch.tensor([x, y, float(G.centre[0, 2].detach())])
     return bool(((n @ p) <= d).all(-1).any())
 
 

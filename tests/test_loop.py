@@ -429,7 +429,9 @@ def test_the_default_loop_chooses_the_template_family_then_piles_it_once(tmp):
         assert r["score"] >= 2 - 1e-6  # each measure over its best: 1 + 1 at least
     kept = min(scored, key=lambda r: r["score"])
     assert fam["kept"] == kept["family"] and f"template family: {kept['family']}" in p.stdout
-    assert (out / "family" / "family.png").is_file()
+    assert (out / "family" / "family.png").is_file() and (out / "family" / "views.png").is_file()
+    assert (out / "model" / "template_family.png").read_bytes() == \
+        (out / "family" / "views.png").read_bytes()  # the card's three views of each candidate
     readme = (out / "model" / "README.md").read_text()
     assert f"**Template family:** {kept['family']} kept" in readme and "Verdict" in readme
     assert "**Time budget:** 30 min" in readme

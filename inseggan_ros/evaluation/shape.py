@@ -233,7 +233,7 @@ def fit(template: Pieces, truth: Pieces, voxel: float | None = None, mirror: boo
 
 
 # ------------------------------------------------------------------------------ drawing
-def _views(pieces: Pieces, lo: np.ndarray, hi: np.ndarray, voxel: float) -> list[np.ndarray]:
+def views(pieces: Pieces, lo: np.ndarray, hi: np.ndarray, voxel: float) -> list[np.ndarray]:
     """Height maps of a body seen along -z (top), +y (front) and -x (side); NaN where empty."""
     axes = [np.arange(a + voxel / 2, b, voxel) for a, b in zip(lo, hi)]
     X, Y, Z = np.meshgrid(*axes, indexing="ij")
@@ -266,17 +266,17 @@ def three_view(template: Pieces, truth: Pieces, path, title: str = "",
     lo, hi = lo - pad, hi + pad
     if voxel is None:
         voxel = float((hi - lo).max()) / 120
-    rows = [("learned template", _views(template, lo, hi, voxel)),
-            ("true part", _views(truth, lo, hi, voxel))]
+    rows = [("learned template", views(template, lo, hi, voxel)),
+            ("true part", views(truth, lo, hi, voxel))]
     extents = [(lo[0], hi[0], lo[1], hi[1]), (lo[0], hi[0], lo[2], hi[2]),
                (lo[1], hi[1], lo[2], hi[2])]
     labels = [("x", "y"), ("x", "z"), ("y", "z")]
     fig, ax = plt.subplots(2, 3, figsize=(9, 6))
     ranges = [(np.nanmin([r[1][j] for r in rows]), np.nanmax([r[1][j] for r in rows]))
               for j in range(3)]
-    for i, (name, views) in enumerate(rows):
+    for i, (name, imgs) in enumerate(rows):
         for j, (img, ext, (lx, ly), view) in enumerate(
-                zip(views, extents, labels, ("top", "front", "side"))):
+                zip(imgs, extents, labels, ("top", "front", "side"))):
             a = ax[i, j]
             a.imshow(img, origin="lower", extent=[e * 1e3 for e in ext], cmap="viridis",
                      vmin=ranges[j][0], vmax=ranges[j][1])  # one shading per view

@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 
 DEFAULT_MINUTES = 45.0  # `inseggan loop --minutes`: a default loop took 25-35 minutes on
 # two cores (docs/experiments.md), so the budget cuts it only on a slower or busier machine
+
 # each stage's weight in the split of the time left (see the module's docstring)
 WEIGHTS = {"shape": 0.17, "family": 0.32, "simulate": 0.16, "centres": 0.30, "export": 0.05}
 ORDER = tuple(WEIGHTS)

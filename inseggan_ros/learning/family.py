@@ -34,7 +34,8 @@ Each candidate is scored by two label-free measures the loop already trusts:
 The kept family minimises the sum of the two, each divided by its best value over the
 candidates: a candidate must both pile like the part and explain the frames. The piles the
 loop then simulates are of the kept candidate at its best scale. Everything is written to
-out/family.json (each candidate's scores, scale and seconds), out/family.png (the scores) and
+out/family.json (each candidate's scores, scale and seconds), out/family.png (the scores),
+out/views.png (each candidate at its scale from the top, the front and the side) and
 each candidate's folder; a killed choice resumes candidate by candidate.
 """
 from __future__ import annotations
@@ -270,8 +271,44 @@ def _decide(rows: dict, rod_file, config: dict, out: Path) -> dict:
                        for r in rows.values()],
               "seconds": round(sum(r.get("seconds", 0.0) for r in scored), 1)}
     _plot(scored, best["family"], out / "family.png")
+    _draw_views(scored, best["family"], out / "views.png")
     write_json(out / "family.json", choice)
     return choice
+
+
+def _draw_views(rows: list[dict], kept: str, path: Path) -> None:
+    """Each candidate's template at its best scale (the piles' part) seen from the top, the
+    front and the side (`evaluation.shape.views`: shaded by distance to the viewer), a row
+    each, all at one scale, in template units (the model's 64-pixel crop spans 2 of them).
+    Written atomically."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from inseggan_ros.evaluation.shape import template_pieces, vertices, views
+
+    bodies = [(r, template_pieces(build_models(checkpoint.load(r["part"]), r["part"])[1]))
+              for r in rows]
+    v = np.vstack([vertices(p) for _, p in bodies])
+    lo, hi = v.min(0), v.max(0)
+    lo, hi = lo - 0.05 * (hi - lo).max(), hi + 0.05 * (hi - lo).max()
+    voxel = float((hi - lo).max()) / 80
+    extents = [(lo[0], hi[0], lo[1], hi[1]), (lo[0], hi[0], lo[2], hi[2]),
+               (lo[1], hi[1], lo[2], hi[2])]
+    fig, axes = plt.subplots(len(bodies), 3, figsize=(7.5, 2.1 * len(bodies)), squeeze=False)
+    for ax_row, (r, pieces) in zip(axes, bodies):
+        for a, img, ext, view in zip(ax_row, views(pieces, lo, hi, voxel), extents,
+                                     ("top", "front", "side")):
+            a.imshow(img, origin="lower", extent=ext, cmap="viridis")
+            a.set_title(f"{r['family']}{' (kept)' if r['family'] == kept else ''} at "
+                        f"x{r['scale']:g}: {view}", fontsize=8)
+            a.tick_params(labelsize=6)
+            a.set_aspect("equal")
+    fig.tight_layout()
+    tmp = path.with_suffix(".tmp.png")
+    fig.savefig(tmp, dpi=80)
+    plt.close(fig)
+    tmp.replace(path)
 
 
 def _plot(rows: list[dict], kept: str, path: Path) -> None:

@@ -943,6 +943,7 @@ def _export_stage(finished: Path, sim: Path, view: dict, data, cfg: LoopConfig, 
         piles = data_mod.load_sim_split(sim, "val", limit=100, **view)
     card = _export(finished, data, cfg, out / "model", piles, camera, recipe)
     if cfg.family is not None and (out / "family" / "family.json").is_file():
+        _copy_atomic(out / "family" / "views.png", out / "model" / "template_family.png")
         chosen = json.loads((out / "family" / "family.json").read_text())
         card["template_family"] = {  # each candidate's scores and time, the one kept
             "kept": chosen["kept"], "scale": chosen["scale"], "seconds": chosen["seconds"],
@@ -955,6 +956,16 @@ def _export_stage(finished: Path, sim: Path, view: dict, data, cfg: LoopConfig, 
     readme.write_text(markdown(card))
     readme.replace(out / "model" / "README.md")
     return card
+
+
+def _copy_atomic(src: Path, dest: Path) -> None:
+    """`src` copied to `dest` whole or not at all (where `src` exists)."""
+    import shutil
+
+    if src.is_file():
+        tmp = dest.with_name(f".{dest.name}.tmp")
+        shutil.copyfile(src, tmp)
+        tmp.replace(dest)
 
 
 def _summarise_templates(summary: dict, out: Path, planned: str, thickness: str,
