@@ -255,34 +255,44 @@ def three_view(template: Pieces, truth: Pieces, path, title: str = "",
     """PNG: the aligned template (top row) and the true part (bottom row) seen from the top,
     the front and the side, shaded by distance to the viewer; axes in millimetres. Both bodies
     in the true part's own frame (`transformed(template, fit.R, fit.t)`). Written atomically."""
+    return views_figure([("learned template", template), ("true part", truth)], path, title,
+                        voxel)
+
+
+def views_figure(bodies: list[tuple[str, Pieces]], path, title: str = "",
+                 voxel: float | None = None, unit: float = 1e3, unit_name: str = "mm",
+                 dpi: int = 90, voxels: int = 120) -> Path:
+    """PNG: each (name, body) a row, seen from the top, the front and the side (`views`), all
+    in one box and one shading per view, so that sizes compare; axes in `unit_name`
+    (coordinates times `unit`); `voxel` by default 1/`voxels` of the box's largest side.
+    Written atomically."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    v = np.vstack([vertices(template), vertices(truth)])
+    v = np.vstack([vertices(body) for _, body in bodies])
     lo, hi = v.min(0), v.max(0)
     pad = 0.05 * (hi - lo).max()
     lo, hi = lo - pad, hi + pad
     if voxel is None:
-        voxel = float((hi - lo).max()) / 120
-    rows = [("learned template", views(template, lo, hi, voxel)),
-            ("true part", views(truth, lo, hi, voxel))]
+        voxel = float((hi - lo).max()) / voxels
+    rows = [(name, views(body, lo, hi, voxel)) for name, body in bodies]
     extents = [(lo[0], hi[0], lo[1], hi[1]), (lo[0], hi[0], lo[2], hi[2]),
                (lo[1], hi[1], lo[2], hi[2])]
     labels = [("x", "y"), ("x", "z"), ("y", "z")]
-    fig, ax = plt.subplots(2, 3, figsize=(9, 6))
+    fig, ax = plt.subplots(len(rows), 3, figsize=(9, 3 * len(rows)), squeeze=False)
     ranges = [(np.nanmin([r[1][j] for r in rows]), np.nanmax([r[1][j] for r in rows]))
               for j in range(3)]
     for i, (name, imgs) in enumerate(rows):
         for j, (img, ext, (lx, ly), view) in enumerate(
                 zip(imgs, extents, labels, ("top", "front", "side"))):
             a = ax[i, j]
-            a.imshow(img, origin="lower", extent=[e * 1e3 for e in ext], cmap="viridis",
+            a.imshow(img, origin="lower", extent=[e * unit for e in ext], cmap="viridis",
                      vmin=ranges[j][0], vmax=ranges[j][1])  # one shading per view
             a.set_title(f"{name}: {view}", fontsize=9)
-            a.set_xlabel(f"{lx} (mm)", fontsize=8)
-            a.set_ylabel(f"{ly} (mm)", fontsize=8)
+            a.set_xlabel(f"{lx} ({unit_name})", fontsize=8)
+            a.set_ylabel(f"{ly} ({unit_name})", fontsize=8)
             a.tick_params(labelsize=7)
             a.set_aspect("equal")
     if title:
@@ -293,7 +303,7 @@ def three_view(template: Pieces, truth: Pieces, path, title: str = "",
     fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".png.tmp")
     os.close(fd)
     try:
-        fig.savefig(tmp, dpi=90, format="png")
+        fig.savefig(tmp, dpi=dpi, format="png")
         os.replace(tmp, path)
     finally:
         plt.close(fig)

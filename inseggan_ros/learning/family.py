@@ -278,37 +278,14 @@ def _decide(rows: dict, rod_file, config: dict, out: Path) -> dict:
 
 def _draw_views(rows: list[dict], kept: str, path: Path) -> None:
     """Each candidate's template at its best scale (the piles' part) seen from the top, the
-    front and the side (`evaluation.shape.views`: shaded by distance to the viewer), a row
-    each, all at one scale, in template units (the model's 64-pixel crop spans 2 of them).
-    Written atomically."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    front and the side (`evaluation.shape.views_figure`), a row each, all at one scale, in
+    template units (the model's 64-pixel crop spans 2 of them)."""
+    from inseggan_ros.evaluation.shape import template_pieces, views_figure
 
-    from inseggan_ros.evaluation.shape import template_pieces, vertices, views
-
-    bodies = [(r, template_pieces(build_models(checkpoint.load(r["part"]), r["part"])[1]))
+    bodies = [(f"{r['family']}{' (kept)' if r['family'] == kept else ''} at x{r['scale']:g}",
+               template_pieces(build_models(checkpoint.load(r["part"]), r["part"])[1]))
               for r in rows]
-    v = np.vstack([vertices(p) for _, p in bodies])
-    lo, hi = v.min(0), v.max(0)
-    lo, hi = lo - 0.05 * (hi - lo).max(), hi + 0.05 * (hi - lo).max()
-    voxel = float((hi - lo).max()) / 80
-    extents = [(lo[0], hi[0], lo[1], hi[1]), (lo[0], hi[0], lo[2], hi[2]),
-               (lo[1], hi[1], lo[2], hi[2])]
-    fig, axes = plt.subplots(len(bodies), 3, figsize=(7.5, 2.1 * len(bodies)), squeeze=False)
-    for ax_row, (r, pieces) in zip(axes, bodies):
-        for a, img, ext, view in zip(ax_row, views(pieces, lo, hi, voxel), extents,
-                                     ("top", "front", "side")):
-            a.imshow(img, origin="lower", extent=ext, cmap="viridis")
-            a.set_title(f"{r['family']}{' (kept)' if r['family'] == kept else ''} at "
-                        f"x{r['scale']:g}: {view}", fontsize=8)
-            a.tick_params(labelsize=6)
-            a.set_aspect("equal")
-    fig.tight_layout()
-    tmp = path.with_suffix(".tmp.png")
-    fig.savefig(tmp, dpi=80)
-    plt.close(fig)
-    tmp.replace(path)
+    views_figure(bodies, path, unit=1.0, unit_name="template units", dpi=80, voxels=80)
 
 
 def _plot(rows: list[dict], kept: str, path: Path) -> None:

@@ -167,8 +167,8 @@ class LoopConfig:
     family: "FamilyConfig | None" = None  # stage 2c's candidates (None: no such stage): after
     # the rod is sized, the template family whose piles look most like the user's frames and
     # whose renders explain held-out frames best is kept (`family.choose`): the rod, a fitted
-    # box, two boxes, a T or an L of two bars (the model becomes that convex template), or
-    # discs, a ring or a taper
+    # box or two boxes (the model becomes that convex template), or a T or an L of two bars,
+    # discs, a ring or a taper, unfitted
     # (the model stays the rod, as with `match_piles`); the piles are of the kept one at the
     # scale whose piles look most like the frames. Only without an
     # encoder stage (`iterations` 0), for a rod, with neither `convex` nor `match_piles`
@@ -805,10 +805,10 @@ def _shape_cut(folder: Path, train_cfg, budget: Budget) -> None:
                    f"{train_cfg.max_minutes:g} min")
 
 
-def _stage_timer(seconds: dict, stages, budget: Budget | None = None):
+def _stage_timer(seconds: dict, stages, budget: Budget):
     """tick(name, stage, *args): runs `stage(*args)`, records its seconds under `name` and
     advances the progress bar by one stage -> the stage's result. `tick.budget` is the run's
-    time budget (none where not given)."""
+    time budget."""
     def tick(name: str, stage, *args):
         t0 = time.monotonic()
         result = stage(*args)
@@ -817,7 +817,7 @@ def _stage_timer(seconds: dict, stages, budget: Budget | None = None):
         return result
 
     tick.seconds = seconds  # for the stages that record their own (`_simulate_and_fit`)
-    tick.budget = budget if budget is not None else Budget(0.0)
+    tick.budget = budget
     return tick
 
 
@@ -879,7 +879,8 @@ def _scale_then_simulate(file: Path, data, meta, view: dict, out: Path, cfg: Loo
             if choice["kept"] in FITTED:  # a fitted convex template: the model
                 file = Path(choice["model"])
             # the piles are of the kept candidate at its scale; the model stays the rod for
-            # discs, a ring, a taper (as with match_piles), and keeps its own size
+            # the unfitted ones (a T, an L, discs, a ring, a taper: as with match_piles), and
+            # keeps its own size
             part = Path(choice["part"])
     finished = _simulate_and_fit(file, data, meta, view, sim, out / "encoder", cfg,
                                  tick.seconds, "", progress, part)
@@ -907,8 +908,8 @@ def family_stage(file: Path, data, meta, view: dict, out: Path, cfg: LoopConfig,
     frames = _user_frames(data, prep, "train", cfg.family.frames, progress)["x"]
     seconds = math.inf if budget is None else budget.share("family")
     choice = family.choose(file, frames, data, meta, view, out, cfg.family, progress, seconds)
-    for row in choice["rows"]:
-        if budget is not None and row.get("skipped", "").startswith(family.TIME_SKIP):
+    for row in choice["rows"] if budget is not None else ():
+        if row.get("skipped", "").startswith(family.TIME_SKIP):
             budget.cut(f"family: {row['family']} {row['skipped']}")
     return choice
 
