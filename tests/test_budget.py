@@ -74,11 +74,12 @@ def test_the_centre_stage_takes_the_iterations_its_share_holds_and_keeps_them_on
     share = 600 * budget_mod.WEIGHTS["centres"] / (budget_mod.WEIGHTS["centres"]
                                                    + budget_mod.WEIGHTS["export"])
     got = _centre_iterations(cfg, tmp / "centres", b)
-    # this machine's step time, measured again, sets the count: within a factor of two of it
-    want = centre_iterations(3000, share, step)
-    assert want / 2 <= got <= min(3000, 2 * want)
     kept = json.loads((tmp / "centres" / "budget.json").read_text())
-    assert kept["iterations"] == got and kept["asked"] == 3000
+    # the count is the share over the step time the stage itself measured on this machine (a
+    # second timing on a busy machine may differ from it by any factor)
+    assert kept["share_s"] == pytest.approx(share, rel=1e-3) and 0 < kept["step_s"] < 60
+    assert got == kept["iterations"] == centre_iterations(3000, kept["share_s"], kept["step_s"])
+    assert kept["asked"] == 3000
     if got < 3000:
         assert b.cuts == [f"centre votes: {got} of 3000 iterations"]
     # resumed, with any budget or none, the kept count is the schedule

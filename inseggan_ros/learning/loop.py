@@ -347,7 +347,7 @@ def _centre_iterations(cfg: LoopConfig, out: Path, budget: Budget | None) -> int
         iterations = budget_mod.centre_iterations(cfg.centre_iterations, seconds, step)
         out.mkdir(parents=True, exist_ok=True)
         write_json(kept, {"iterations": iterations, "asked": cfg.centre_iterations,
-                          "share_s": round(seconds, 1), "step_s": round(step, 4)})
+                          "share_s": seconds, "step_s": step})
     if budget is not None and iterations < cfg.centre_iterations:
         budget.cut(f"centre votes: {iterations} of {cfg.centre_iterations} iterations")
     return iterations
