@@ -1,5 +1,6 @@
-"""The parts made of bars (a flat T, an angle bracket, a flat U): neither solids of revolution nor
-boxes; each is dropped into a bin, rendered, and measured as the shape measures take a part."""
+"""The parts made of bars (a flat T, an angle bracket, a flat U, a flat Z): neither solids of
+revolution nor boxes; each is dropped into a bin, rendered, and measured as the shape measures
+take a part."""
 import numpy as np
 import pytest
 
@@ -10,7 +11,8 @@ from inseggan_ros.sim.scene import BinSimulator, SceneConfig
 # name -> (extent x, y, z in mm, volume in cm^3: the bars' sum less their shared corner)
 BAR_PARTS = {"t_piece": ((40, 40, 8), (40 * 10 + 10 * 31 - 10 * 1) * 8 / 1000),
              "l_bracket": ((30, 20, 26), (30 * 20 * 5 + 5 * 20 * 26 - 5 * 20 * 5) / 1000),
-             "u_clip": ((36, 36, 6), (36 * 8 + 2 * 8 * 29 - 2 * 8 * 1) * 6 / 1000)}
+             "u_clip": ((36, 36, 6), (36 * 8 + 2 * 8 * 29 - 2 * 8 * 1) * 6 / 1000),
+             "z_bracket": ((40, 40, 8), (2 * 24 * 8 + 8 * 26 - 2 * 8 * 1) * 8 / 1000)}
 
 
 @pytest.mark.parametrize("name", BAR_PARTS)

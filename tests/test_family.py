@@ -36,6 +36,8 @@ def test_config_refuses_what_it_cannot_do():
                      ({"scales": (0.0, 1.0)}, "scales"),
                      ({"piles": 0}, "piles"),
                      ({"extend": -1}, "extend"),
+                     ({"refine": -1}, "refine"),
+                     ({"leaders": -2}, "leaders"),
                      ({"frames": 50, "val_frames": 50}, "val_frames")):
         with pytest.raises(ValueError, match=said):
             family.FamilyConfig(**kw)
@@ -64,6 +66,29 @@ def test_the_scale_search_steps_past_the_grid_only_while_its_best_is_at_an_end()
     assert list(w1) == seen == [0.55, 0.7, 0.85, 1.0]
 
 
+def test_the_refinement_halves_the_step_about_the_best_each_round():
+    """A V-shaped distance whose minimum (1.3) lies between grid points: each round measures
+    the geometric middles between the best and its two neighbours, so the best found moves
+    to within the last step of the minimum; no time left, nothing is measured."""
+    seen = []
+
+    def measure(v):
+        seen.append(v)
+        return abs(np.log(v / 1.3))
+
+    w1 = {v: measure(v) for v in (1.0, 1.1765, 1.3842, 1.6286)}
+    seen.clear()
+    one = family.refine_scale(measure, w1, 1)
+    assert seen == pytest.approx([(1.1765 * 1.3842) ** 0.5, (1.3842 * 1.6286) ** 0.5], abs=1e-4)
+    two = family.refine_scale(measure, w1, 2)
+    assert set(one) < set(two) and len(two) == len(w1) + 4
+    best = min(two, key=two.get)
+    assert abs(np.log(best / 1.3)) < abs(np.log(min(w1, key=w1.get) / 1.3)) / 2
+    assert abs(np.log(best / 1.3)) <= np.log(1.3842 / 1.1765) / 4 + 1e-6
+    seen.clear()
+    assert family.refine_scale(measure, w1, 2, more=lambda: False) == w1 and not seen
+
+
 def test_a_scaled_template_is_the_same_shape_that_many_times_as_large(tmp):
     """A rod and a convex template (a box, two boxes) scaled by `scaled_model`: every extent x s,
     the rest of the model (its encoder, its poses) as it was; scale 1 is the file itself."""
@@ -90,7 +115,7 @@ def test_a_block_s_frames_choose_a_box_over_the_rod_and_the_taper_and_resume(tmp
     data = BagFrames(BAG, 4)
     x = data.frames(PreprocessConfig.from_dict(state["preprocess_config"]))[0]["x"]
     cfg = family.FamilyConfig(families=("rod", "box", "taper"), piles=12, fit_iterations=60,
-                              workers=2)
+                              workers=2, refine=1, leaders=1)
     out = tmp / "family"
     choice = family.choose(ROD, x, data, None, pile_view(data, state), out, cfg, progress=False)
     assert choice["kept"] == "box", choice["rows"]
@@ -98,10 +123,12 @@ def test_a_block_s_frames_choose_a_box_over_the_rod_and_the_taper_and_resume(tmp
     assert set(rows) == {"rod", "box", "taper"}
     for r in rows.values():
         assert {f"{v:g}" for v in cfg.scales} <= set(r["pile_w1_by_scale"])  # and any steps
-        assert len(r["pile_w1_by_scale"]) <= len(cfg.scales) + cfg.extend  # past its ends
+        assert len(r["pile_w1_by_scale"]) <= len(cfg.scales) + cfg.extend \
+            + 2 * cfg.refine * ("refined" in r)  # past its ends, and the leader's refinement
         assert r["pile_w1"] == pytest.approx(min(r["pile_w1_by_scale"].values()), abs=1e-5)
         assert r["score"] >= 2 - 1e-6
     assert rows["box"]["score"] == min(r["score"] for r in rows.values())
+    assert [f for f, r in rows.items() if r.get("refined")] == ["box"]  # the one leader
     assert choice["part"] == rows["box"]["part"] and Path(choice["part"]).is_file()
     assert checkpoint.load(choice["model"])["model_config"]["renderer"] == "convex"
     assert (out / "family.png").is_file() and (out / "views.png").is_file()
@@ -118,24 +145,44 @@ def _inside(G, x: float, y: float) -> bool:
     return bool(((n @ p) <= d).all(-1).any())
 
 
-@pytest.mark.parametrize("kind", ["tee", "ell"])
-def test_two_bars_start_joined_as_a_t_or_an_l_from_the_rod_s_box(kind):
-    """Copies of one box fitted to T-pieces' frames stayed one slab, so two bars start joined:
-    a bar 2a long across the top, and one as long down from its middle (T) or its end (L), each
-    as wide as the rod's radius, the outline centred on the origin."""
+@pytest.mark.parametrize("kind", ["tee", "ell", "u"])
+def test_bars_start_joined_as_a_t_an_l_or_a_u_from_the_rod_s_box(kind):
+    """Copies of one box fitted to T-pieces' frames stayed one slab, so bars start joined: a
+    bar 2a long across the top, and as long down from its middle (T), its end (L) or both its
+    ends (U: three pieces, whose centres are not in one point), each as wide as the rod's
+    radius, the outline centred on the origin."""
     state = checkpoint.load(ROD)
     rod = build_models(state, ROD)[1]
     a, b, _ = rod_box(rod)
     w = b / 2
-    _, G, _ = convex_from_rod(state, ShapeFitConfig(pieces=2, walls=4, start=kind))
-    top, bottom = a - w, -a + w / 2  # the top bar's middle; near the second bar's end
+    _, G, _ = convex_from_rod(state, ShapeFitConfig(pieces=3 if kind == "u" else 2, walls=4,
+                                                    start=kind))
+    top, bottom = a - w, -a + w / 2  # the top bar's middle; near the down bars' ends
     assert _inside(G, -0.9 * a, top) and _inside(G, 0.9 * a, top)  # the bar across
     assert not _inside(G, 0.0, top + 2 * w)  # nothing above it
-    stem = 0.0 if kind == "tee" else a - w
-    assert _inside(G, stem, bottom) and _inside(G, stem, 0.0)  # the bar down, whole
-    for x in (-0.9 * a, 0.9 * a):
-        if abs(x - stem) > 2 * w:
+    stems = {"tee": [0.0], "ell": [a - w], "u": [-a + w, a - w]}[kind]
+    for stem in stems:
+        assert _inside(G, stem, bottom) and _inside(G, stem, 0.0)  # each bar down, whole
+    for x in (-0.9 * a, 0.0, 0.9 * a):
+        if all(abs(x - stem) > 2 * w for stem in stems):
             assert not _inside(G, x, bottom), (kind, x)
     assert FAMILIES[kind].start == kind and kind not in family.FITTED  # the model keeps the rod
-    with pytest.raises(ValueError, match="start tee is two bars; valid: pieces 2 and walls 4"):
+    with pytest.raises(ValueError, match="start tee is 2 bars; valid: pieces 2 and walls 4"):
         ShapeFitConfig(pieces=1, start="tee")
+    with pytest.raises(ValueError, match="start u is 3 bars; valid: pieces 3 and walls 4"):
+        ShapeFitConfig(pieces=2, start="u")
+
+
+def test_pieces_joined_in_a_chain_need_each_centre_in_the_next_piece():
+    """Per-piece joints: accepted where each lies in its own box and the next one's (a U's
+    corners), refused, naming what is valid, where a piece would not hold the previous
+    centre."""
+    state = checkpoint.load(ROD)
+    _, G, _ = convex_from_rod(state, ShapeFitConfig(pieces=3, walls=4, start="u"))
+    legs = [(-0.5, -0.3, -0.5, 0.5, 0.1), (-0.5, 0.5, 0.3, 0.5, 0.1), (0.3, 0.5, -0.5, 0.5, 0.1)]
+    G.init_boxes(legs, [(-0.4, 0.4), (0.4, 0.4), (0.4, 0.4)])
+    assert _inside(G, -0.4, -0.45) and _inside(G, 0.4, -0.45) and not _inside(G, 0.0, -0.2)
+    with pytest.raises(ValueError, match="per box a point inside it and the next box"):
+        G.init_boxes(legs, [(-0.4, -0.4), (0.0, 0.4), (0.4, -0.4)])
+    with pytest.raises(ValueError, match="one \\(x, y\\) or 3 of them"):
+        G.init_boxes(legs, [(0.4, 0.4)] * 2)

@@ -15,13 +15,15 @@ sized) rod, and keeps the one whose simulated piles look most like the user's fr
          not fitted: fitted by reconstruction, two bars (started as copies of one box, as a T
          or as an L alike) became one slab on T-pieces' frames (docs/experiments.md);
   ell    two bars joined as an L, so;
+  u      three bars joined as a U, so (clips, staples, brackets);
   discs  the rod's radius profile cut into two flat-ended discs (a head on a shaft);
   ring   one hexagonal disc with a hole (nuts, washers);
   taper  one disc tapering to 0.4 of its radius (cones, stoppers).
 
 Each candidate is scored by two label-free measures the loop already trusts:
   * piles: `piles` scenes of the candidate, at each of `scales` (the whole template scaled;
-    beyond the grid's end, step by step, where the best lies there: `scale_search`),
+    beyond the grid's end, step by step, where the best lies there: `scale_search`; then,
+    for the leading candidates, the step about each one's best halved twice: `refine_scale`),
     simulated in the user's bin, through the user's camera, cut as the frames are; the
     1-Wasserstein distance of their heights (every pixel of the crop, the floor included: the
     parts' heights and visible area at once) to the user's frames' (`pilematch.heights`, the
@@ -65,6 +67,7 @@ FAMILIES: dict[str, ShapeFitConfig | None] = {
     "bars": ShapeFitConfig(pieces=2, walls=4, start="box"),
     "tee": ShapeFitConfig(pieces=2, walls=4, start="tee", iterations=0),
     "ell": ShapeFitConfig(pieces=2, walls=4, start="ell", iterations=0),
+    "u": ShapeFitConfig(pieces=3, walls=4, start="u", iterations=0),
     "discs": ShapeFitConfig(pieces=2, walls=8, start="discs", iterations=0),
     "ring": ShapeFitConfig(pieces=1, walls=RING_WALLS, start="discs", hole=0.5, iterations=0),
     "taper": ShapeFitConfig(pieces=1, walls=8, start="discs", taper=0.4, iterations=0),
@@ -82,7 +85,9 @@ class FamilyConfig:
     families: tuple[str, ...] = tuple(FAMILIES)  # the candidates
     piles: int = 60  # simulated scenes of each candidate at each scale
     scales: tuple[float, ...] = (0.55, 0.7, 0.85, 1.0)  # of each candidate's whole template
-    extend: int = 3  # steps beyond the grid's end where its best lies there (`scale_search`)
+    extend: int = 5  # steps beyond the grid's end where its best lies there (`scale_search`)
+    refine: int = 2  # rounds of halving the scale step about the leaders' best (`refine_scale`)
+    leaders: int = 3  # the candidates of the best scores so far whose scale is refined
     fit_iterations: int = 500  # of the fitted families (box, bars)
     frames: int = 600  # of the user's frames, at most, for the fits and the heights
     val_frames: int = 80  # held out of them for the reconstruction score
@@ -94,8 +99,9 @@ class FamilyConfig:
         if not self.families or unknown or len(set(self.families)) != len(self.families):
             raise ValueError(f"families {self.families!r} invalid; valid: one or more of "
                              f"{', '.join(FAMILIES)}, each once")
-        if self.extend < 0:
-            raise ValueError(f"extend {self.extend!r} invalid; valid: >= 0")
+        for key in ("extend", "refine", "leaders"):
+            if getattr(self, key) < 0:
+                raise ValueError(f"{key} {getattr(self, key)!r} invalid; valid: >= 0")
         if not self.scales or any(not 0 < v <= MAX_SCALE for v in self.scales) \
                 or list(self.scales) != sorted(set(self.scales)):
             raise ValueError(f"scales {self.scales!r} invalid; valid: one or more increasing "
@@ -184,6 +190,31 @@ def scale_search(measure, cfg: FamilyConfig, more=lambda: True) -> dict[float, f
     return dict(sorted(w1.items()))
 
 
+def refine_scale(measure, w1: dict[float, float], rounds: int, more=lambda: True
+                 ) -> dict[float, float]:
+    """`rounds` times (while `more()`): `measure` at the geometric middle between the best
+    scale of `w1` ({scale: distance}) and each of its measured neighbours, so that the step
+    about the best halves (in log scale) each round -> `w1` with the new scales.
+
+    Why: the heights' W1 falls steeply to a narrow minimum in scale (on U-clips the L measured
+    0.145, 0.033 and 0.249 at x1.18, x1.38 and x1.63), narrower than the grid's step, so the
+    candidates' distances at their best grid point compare where each grid happened to fall
+    rather than each shape at its own size."""
+    w1 = dict(w1)
+    for _ in range(rounds):
+        if not more():
+            break
+        ordered = sorted(w1)
+        best = min(w1, key=w1.get)
+        i = ordered.index(best)
+        for j in (i - 1, i + 1):
+            if 0 <= j < len(ordered):
+                v = round(math.sqrt(best * ordered[j]), 4)
+                if v not in w1 and 0 < v <= MAX_SCALE:
+                    w1[v] = measure(v)
+    return dict(sorted(w1.items()))
+
+
 def combined(rows: list[dict]) -> list[float]:
     """Each row's score: its W1 over the best W1 plus its reconstruction over the best."""
     w = min(r["pile_w1"] for r in rows)
@@ -235,24 +266,62 @@ def choose(rod_file, frames: np.ndarray, data, meta, view: dict, out,
         except ValueError as e:  # a rod too short for two discs, a ring's wall too thin
             rows[family] = {"family": family, "skipped": str(e)}
             continue
-        made: dict[float, Path] = {}  # each scale's model, written once
-
-        def measure(v: float, file=file, family=family, made=made) -> float:
-            made[v] = scaled_model(file, v, out / family / f"scale{v:g}.pt")
-            return pile_distance(made[v], data, meta, view, out / family / "piles", ref, cfg)
-
-        w1 = scale_search(measure, cfg, more=lambda own=own: time.monotonic() < own)
-        scale = min(w1, key=w1.get)
+        w1 = scale_search(_measure(file, family, data, meta, view, out, ref, cfg), cfg,
+                          more=lambda own=own: time.monotonic() < own)
         row = {"family": family, "model": str(file), "rod": str(rod_file), "config": config,
-               "scale": scale, "part": str(made[scale]),
-               "recon_l1": held_out_l1(file, val), "pile_w1": w1[scale],
-               "pile_w1_by_scale": {f"{v:g}": round(d, 5) for v, d in w1.items()},
+               "recon_l1": held_out_l1(file, val), **_at_best(w1, file, out / family),
                "seconds": round(time.monotonic() - t0, 1)}
-        with open(log, "a") as f:
-            f.write(json.dumps(row) + "\n")
+        _log(log, row)
         rows[family] = row
         spent.append(row["seconds"])
+    _refine_leaders(rows, data, meta, view, out, ref, cfg, log, deadline)
     return _decide(rows, rod_file, config, out)
+
+
+def _measure(file: Path, family: str, data, meta, view: dict, out: Path, ref: np.ndarray,
+             cfg: FamilyConfig):
+    """-> measure(scale): the pile distance of the candidate `file` at that scale (its model
+    written to out/family/scale{scale}.pt)."""
+    def measure(v: float) -> float:
+        part = scaled_model(file, v, out / family / f"scale{v:g}.pt")
+        return pile_distance(part, data, meta, view, out / family / "piles", ref, cfg)
+    return measure
+
+
+def _at_best(w1: dict[float, float], file: Path, folder: Path) -> dict:
+    """A candidate's row fields from its distances by scale: the best scale, the candidate
+    `file` at it (`scaled_model`'s file in `folder`), its distance and all of them."""
+    scale = min(w1, key=w1.get)
+    return {"scale": scale, "part": str(folder / f"scale{scale:g}.pt" if scale != 1.0 else file),
+            "pile_w1": w1[scale],
+            "pile_w1_by_scale": {f"{v:g}": round(d, 5) for v, d in w1.items()}}
+
+
+def _log(log: Path, row: dict) -> None:
+    with open(log, "a") as f:
+        f.write(json.dumps(row) + "\n")
+
+
+def _refine_leaders(rows: dict, data, meta, view: dict, out: Path, ref: np.ndarray,
+                    cfg: FamilyConfig, log: Path, deadline: float) -> None:
+    """The `cfg.leaders` candidates of the best combined scores have their scale refined
+    (`refine_scale`, `cfg.refine` rounds) while the family's time lasts; each refined row is
+    logged again (the last row of a family is the one a resumed choice reads)."""
+    scored = [r for r in rows.values() if "skipped" not in r]
+    if not cfg.refine or not cfg.leaders or not scored:
+        return
+    order = sorted(zip(combined(scored), range(len(scored))))
+    for _, i in order[:cfg.leaders]:
+        row = scored[i]
+        if "refined" in row or time.monotonic() >= deadline:
+            continue
+        t0 = time.monotonic()
+        w1 = {float(v): d for v, d in row["pile_w1_by_scale"].items()}
+        measure = _measure(Path(row["model"]), row["family"], data, meta, view, out, ref, cfg)
+        w1 = refine_scale(measure, w1, cfg.refine, lambda: time.monotonic() < deadline)
+        row.update(_at_best(w1, Path(row["model"]), out / row["family"]), refined=True,
+                   seconds=round(row["seconds"] + time.monotonic() - t0, 1))
+        _log(log, row)
 
 
 def _decide(rows: dict, rod_file, config: dict, out: Path) -> dict:

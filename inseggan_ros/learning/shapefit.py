@@ -53,7 +53,7 @@ from inseggan_ros.runtime.model import (
 from inseggan_ros.runtime.model import build_models
 
 
-BARS = ("tee", "ell")  # the starts of two bars joined (`rod_bars`)
+BARS = {"tee": 2, "ell": 2, "u": 3}  # the starts of bars joined (`rod_bars`): their pieces
 STARTS = ("box", "discs", *BARS)
 
 
@@ -72,8 +72,9 @@ class ShapeFitConfig:
     thickness: str = "data"  # the starting box's height: "data" (the frames' lower-quartile
     # foreground height, where thinner than the rod) or "rod" (the rod's diameter)
     start: str = "box"  # the starting template: "box" (`rod_box`, every piece a copy),
-    # "discs" (`rod_discs`: the rod's radius profile as a stack of `pieces` prisms), or "tee"
-    # or "ell" (two pieces: two bars from the rod's box, joined as a T or an L: `rod_bars`)
+    # "discs" (`rod_discs`: the rod's radius profile as a stack of `pieces` prisms), "tee" or
+    # "ell" (two pieces: two bars from the rod's box, joined as a T or an L: `rod_bars`) or "u"
+    # (three pieces: three bars so joined as a U)
     hole: float = 0.0  # with start "discs": above 0, the one disc (pieces 1) as a hexagonal nut
     # whose hole's faces lie at this fraction of its apothem (`ConvexGenerator.init_ring`: six
     # pieces of 12 walls)
@@ -96,9 +97,9 @@ class ShapeFitConfig:
             raise ValueError(f"thickness {self.thickness!r} invalid; valid: data, rod")
         if self.start not in STARTS:
             raise ValueError(f"start {self.start!r} invalid; valid: {', '.join(STARTS)}")
-        if self.start in BARS and (self.pieces, self.walls) != (2, 4):
-            raise ValueError(f"start {self.start} is two bars; valid: pieces 2 and walls 4 "
-                             f"(not {self.pieces}, {self.walls})")
+        if self.start in BARS and (self.pieces, self.walls) != (BARS[self.start], 4):
+            raise ValueError(f"start {self.start} is {BARS[self.start]} bars; valid: pieces "
+                             f"{BARS[self.start]} and walls 4 (not {self.pieces}, {self.walls})")
         if not 0 <= self.hole < 1:
             raise ValueError(f"hole {self.hole!r} invalid; valid: 0 (no hole) or a fraction "
                              "of the disc's apothem in (0, 1)")
@@ -146,22 +147,28 @@ def rod_box(G: SphereGenerator, x=None) -> tuple[float, float, float]:
     return half_len, rad, thick
 
 
-def rod_bars(G: SphereGenerator, kind: str, x=None) -> tuple[list, tuple[float, float]]:
-    """Two bars from the rod's box (`rod_box`: half-length a, radius b, half-thickness c),
-    joined as a T ("tee": the second bar's end at the first's middle) or an L ("ell": at its
-    end), each 2a long and b wide (together about the rod's footprint), 2c high, the whole
-    outline centred on the template's origin -> `ConvexGenerator.init_boxes`' (boxes, joint).
-    The proportions are a start: the fit and the scale search (`family`) size them."""
+def rod_bars(G: SphereGenerator, kind: str, x=None) -> tuple[list, list]:
+    """Bars from the rod's box (`rod_box`: half-length a, radius b, half-thickness c): one 2a
+    long across the top, and joined to it, each 2a long, one bar down from its middle (a T,
+    "tee"), from its end (an L, "ell"), or from both its ends (a U, "u": three pieces), every
+    bar b wide (together about the rod's footprint) and 2c high, the whole outline centred on
+    the template's origin -> `ConvexGenerator.init_boxes`' (boxes, joints). The proportions
+    are a start: the fit and the scale search (`family`) size them."""
     a, b, c = rod_box(G, x)
     w = max(b / 2, 2 * CONVEX_MIN_EXTENT)
     a = max(a, 2 * w)
     if kind not in BARS:
         raise ValueError(f"bars {kind!r} invalid; valid: {', '.join(BARS)}")
-    x0 = -w if kind == "tee" else a - 2 * w  # the second bar's side
     shift = a - w  # the outline spans y -(2a - w)..w: its middle to 0
-    boxes = [(-a, a, -w + shift, w + shift, 2 * c),
-             (x0, x0 + 2 * w, -(2 * a - w) + shift, w + shift, 2 * c)]
-    return boxes, (x0 + w, shift)
+    top = (-a, a, -w + shift, w + shift, 2 * c)
+
+    def down(x0):  # a bar from the top bar down, its left side at x0
+        return (x0, x0 + 2 * w, -(2 * a - w) + shift, w + shift, 2 * c)
+    if kind == "u":  # leg, top, leg: each piece's centre where it meets the next
+        left, right = (-a + w, shift), (a - w, shift)
+        return [down(-a), top, down(a - 2 * w)], [left, right, right]
+    x0 = -w if kind == "tee" else a - 2 * w  # the second bar's side
+    return [top, down(x0)], [(x0 + w, shift)] * 2
 
 
 def rod_discs(G: SphereGenerator, pieces: int, walls: int, samples: int = 240

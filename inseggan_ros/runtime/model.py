@@ -546,13 +546,14 @@ class ConvexGenerator(TemplateGenerator):
         self.extent.copy_(_softplus_inverse((support - CONVEX_MIN_EXTENT + noise).clamp_min(1e-3)))
 
     @torch.no_grad()
-    def init_boxes(self, boxes, joint: tuple[float, float]) -> None:
+    def init_boxes(self, boxes, joint) -> None:
         """Piece k: the box `boxes[k]` = (x0, x1, y0, y1, height) standing on the floor, along
-        the template's axes, every piece's centre at `joint` (x, y), halfway up the lowest box:
-        a point inside all of them, so that each piece holds the previous one's centre as it
-        is (`halfspaces` adds no reach) and the boxes keep the outline given. Two bars so make
-        a T or an L (`shapefit.rod_bars`), which a box fitted from copies of one box does not
-        become (two copies fitted to T-pieces' frames stayed one square slab:
+        the template's axes, its centre at `joint` (x, y), halfway up the lowest box: one point
+        inside all of them, or one point per piece, each inside its own box and the next one's
+        (where no point is in all: a U's two legs), so that each piece holds the previous one's
+        centre as it is (`halfspaces` adds no reach) and the boxes keep the outline given. Bars
+        so make a T, an L or a U (`shapefit.rod_bars`), which a box fitted from copies of one
+        box does not become (two copies fitted to T-pieces' frames stayed one square slab:
         docs/experiments.md, 2026-12-06, night)."""
         K, P = self.extent.shape
         if len(boxes) != K:
@@ -561,11 +562,20 @@ class ConvexGenerator(TemplateGenerator):
         b = torch.tensor([[float(v) for v in box] for box in boxes], device=dev)
         lo = torch.stack([b[:, 0], b[:, 2], torch.zeros_like(b[:, 0])], 1)
         hi = torch.stack([b[:, 1], b[:, 3], b[:, 4]], 1)
-        centre = torch.tensor([float(joint[0]), float(joint[1]), float(b[:, 4].min()) / 2],
-                              device=dev).expand(K, 3)
-        if not bool(((centre > lo + CONVEX_MIN_EXTENT) & (centre < hi - CONVEX_MIN_EXTENT)).all()):
+        xy = torch.tensor([[float(v) for v in j] for j in joint] if hasattr(joint[0], '__len__')
+                          else [float(v) for v in joint], device=dev)
+        if xy.shape not in ((2,), (K, 2)):
+            raise ValueError(f"joint {joint} invalid; valid: one (x, y) or {K} of them")
+        xy = xy.expand(K, 2)
+        centre = torch.cat([xy, torch.full((K, 1), float(b[:, 4].min()) / 2, device=dev)], 1)
+        prev = torch.cat([centre[:1], centre[:-1]])
+
+        def inside(p):
+            return (p > lo + CONVEX_MIN_EXTENT) & (p < hi - CONVEX_MIN_EXTENT)
+        if not bool((inside(centre) & inside(prev)).all()):
             raise ValueError(f"joint {joint} invalid for boxes {boxes}; valid: a point inside "
-                             f"every box, more than {CONVEX_MIN_EXTENT} from its sides")
+                             "every box, or per box a point inside it and the next box, more "
+                             f"than {CONVEX_MIN_EXTENT} from their sides")
         self.centre.copy_(centre)
         self.orientation.zero_()
         self.tilt.zero_()

@@ -218,6 +218,15 @@ def _u_clip() -> ObjectSpec:
                   ((0.008, 0.029, 0.006), (0.014, 0.0035, 0.0))], density=2700.0)
 
 
+def _z_bracket() -> ObjectSpec:
+    # A flat Z of three bars 8 mm thick: two 24 x 8 mm flanges at opposite ends of a 8 x 26 mm
+    # web that reaches 1 mm into each (40 x 40 mm overall), aluminium.
+    return _bars("z_bracket", "flat aluminium Z of three bars (40 x 40 mm, 8 mm wide, 8 mm thick)",
+                 [((0.024, 0.008, 0.008), (0.008, 0.016, 0.0)),
+                  ((0.008, 0.026, 0.008), (0.0, 0.0, 0.0)),
+                  ((0.024, 0.008, 0.008), (-0.008, -0.016, 0.0))], density=2700.0)
+
+
 OBJECTS: dict[str, ObjectSpec] = {
     o.name: o for o in (
         _single("cylinder", "solid cylinder, 24 mm diameter x 40 mm",
@@ -233,6 +242,7 @@ OBJECTS: dict[str, ObjectSpec] = {
         _t_piece(),
         _l_bracket(),
         _u_clip(),
+        _z_bracket(),
     )
 }
 
