@@ -420,12 +420,13 @@ def test_the_default_loop_chooses_the_template_family_then_piles_it_once(tmp):
     fam = card["template_family"]
     assert fam == summary["template_family"]
     assert [r["family"] for r in fam["candidates"]] == \
-        ["rod", "box", "bars", "tee", "ell", "discs", "ring", "taper"]
+        ["rod", "box", "bars", "tee", "ell", "u", "discs", "ring", "taper"]
     scored = [r for r in fam["candidates"] if "skipped" not in r]
     assert {"rod", "box", "bars"} <= {r["family"] for r in scored}
     for r in scored:
         assert r["pile_w1"] > 0 and r["recon_l1"] > 0 and r["seconds"] > 0
-        assert len(r["pile_w1_by_scale"]) == 4
+        # the grid's four scales; the refinement adds at most two a round
+        assert 4 <= len(r["pile_w1_by_scale"]) <= 4 + 2 * r.get("refined", 0)
         assert r["score"] >= 2 - 1e-6  # each measure over its best: 1 + 1 at least
     kept = min(scored, key=lambda r: r["score"])
     assert fam["kept"] == kept["family"] and f"template family: {kept['family']}" in p.stdout
@@ -439,8 +440,8 @@ def test_the_default_loop_chooses_the_template_family_then_piles_it_once(tmp):
     # discs, a ring or a taper are the piles' part and the model stays the rod)
     # at the scale whose piles looked most like the frames
     choice = json.loads((out / "family" / "family.json").read_text())
-    assert choice["scale"] in (0.55, 0.7, 0.85, 1.0) and choice["scale"] == kept["scale"]
     by_scale = kept["pile_w1_by_scale"]
+    assert f"{choice['scale']:g}" in by_scale and choice["scale"] == kept["scale"]
     assert kept["pile_w1"] == pytest.approx(min(by_scale.values()), abs=1e-5)
     moved = kept["family"] != "rod" or kept["scale"] != 1.0
     sim = out / "family" / "sim" if moved else out / "sim"
