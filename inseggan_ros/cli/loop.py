@@ -190,6 +190,10 @@ def _template_options(g) -> None:
     g.add_argument("--family-iterations", type=int, default=FamilyConfig.fit_iterations,
                    help="--families: iterations of the fitted candidates, box and bars "
                         f"({FamilyConfig.fit_iterations})")
+    g.add_argument("--family-refine", type=int, default=FamilyConfig.refine,
+                   help="--families: rounds of halving the scale step about each candidate's "
+                        "best scale (one round for every candidate, the rest for the "
+                        f"{FamilyConfig.leaders} leaders; {FamilyConfig.refine}: none)")
 
 
 def _families(text: str) -> tuple[str, ...]:
@@ -306,6 +310,7 @@ def _with_family(cfg, opts: dict):
         return cfg
     return replace(cfg, family=FamilyConfig(families=families, piles=opts["family_piles"],
                                             fit_iterations=opts["family_iterations"],
+                                            refine=opts["family_refine"],
                                             workers=opts["workers"], seed=opts["seed"]))
 
 
