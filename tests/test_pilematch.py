@@ -9,7 +9,8 @@ import pytest
 
 from inseggan_ros.core import checkpoint
 from inseggan_ros.data.datasets import load_sim_split
-from inseggan_ros.learning.pilematch import PileMatchConfig, disc_model, head_variant, search
+from inseggan_ros.learning.pilematch import (EDGE_STEP, PileMatchConfig, disc_model,
+                                             edge_distances, head_variant, search)
 from inseggan_ros.learning.shapefit import ShapeFitConfig, rod_discs
 from inseggan_ros.sim.dataset import DatasetSpec, generate
 from inseggan_ros.sim.scene import SceneConfig
@@ -26,6 +27,25 @@ def piles_of(part, folder, count: int) -> np.ndarray:
     generate(DatasetSpec(SceneConfig(object=str(part), instances=5),
                          {"train": count, "val": 0, "test": 0}, seed=5), folder, progress=False)
     return load_sim_split(folder, "train")["x"]
+
+
+def test_edge_distances_tell_thin_bars_from_a_slab_and_part_parts_at_a_step():
+    """A bar 2 pixels wide measures at most a pixel to its edge, a 12-pixel square up to 5 (its
+    outer ring, next to the floor, is edge itself); two
+    slabs side by side at one height are one surface, at heights a step apart two; the floor
+    (background) is not measured."""
+    x = -np.ones((3, 1, 32, 32), np.float32)
+    x[0, 0, 4:28, 10:12] = 0.0  # a bar
+    x[1, 0, 10:22, 10:22] = 0.0  # a slab
+    x[2, 0, 10:22, 4:16] = 0.0  # two slabs side by side ...
+    x[2, 0, 10:22, 16:28] = 0.0
+    bar, slab, same = (edge_distances(f[None]) for f in x)
+    assert len(bar) == 48 and len(slab) == 144 and len(same) == 288  # foreground pixels only
+    assert bar.max() <= 1.0 and slab.max() >= 5.0
+    x[2, 0, 10:22, 16:28] = 0.5 * EDGE_STEP * 10  # ... and a step of 2.5 EDGE_STEPs apart
+    stepped = edge_distances(x[2][None])
+    assert stepped.mean() < same.mean() and (stepped <= 1).sum() > (same <= 1).sum()
+    assert len(edge_distances(x)) == 48 + 144 + 288
 
 
 def test_the_head_variant_keeps_the_template_s_length_and_its_other_disc():

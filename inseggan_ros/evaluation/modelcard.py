@@ -542,12 +542,14 @@ def _family_line(card: dict) -> list[str]:
     if not fam:
         return []
     rows = ", ".join(f"{r['family']} {r['score']:.2f} (W1 {r['pile_w1']:.3f} at x{r['scale']:g}, "
-                     f"reconstruction {r['recon_l1']:.3f}, {r['seconds'] / 60:.1f} min)"
+                     + (f"edges' W1 {r['edge_w1']:.3f}, " if "edge_w1" in r else "")
+                     + f"reconstruction {r['recon_l1']:.3f}, {r['seconds'] / 60:.1f} min)"
                      if "score" in r else f"{r['family']} not made ({r['skipped']})"
                      for r in fam["candidates"])
     return [f"* **Template family:** {fam['kept']} kept, its piles at x{fam['scale']:g}, of: "
-            f"{rows}; the score is the piles' heights' W1 to the frames over the best plus the "
-            "held-out reconstruction over the best (`family/family.png` in the loop's folder); "
+            f"{rows}; the score is the piles' heights' W1 to the frames over the best, plus "
+            "their edge distances' W1 over the best, plus the held-out reconstruction over the "
+            "best (`family/family.png` in the loop's folder); "
             "each candidate from the top, the front and the side: "
             "![candidates](template_family.png)"]
 

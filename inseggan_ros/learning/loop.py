@@ -929,8 +929,8 @@ def _finishing_stages(finished: Path, sim: Path, view: dict, data, out: Path, cf
     return finished
 
 
-CARD_FAMILY_KEYS = ("family", "scale", "pile_w1", "pile_w1_by_scale", "recon_l1", "score",
-                    "seconds", "refined", "skipped")  # of each candidate, on the card
+CARD_FAMILY_KEYS = ("family", "scale", "pile_w1", "pile_w1_by_scale", "edge_w1", "recon_l1",
+                    "score", "seconds", "refined", "skipped")  # of each candidate, on the card
 
 
 def _export_stage(finished: Path, sim: Path, view: dict, data, cfg: LoopConfig, out: Path,
