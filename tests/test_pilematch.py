@@ -31,9 +31,8 @@ def piles_of(part, folder, count: int) -> np.ndarray:
 
 def test_edge_distances_tell_thin_bars_from_a_slab_and_part_parts_at_a_step():
     """A bar 2 pixels wide measures at most a pixel to its edge, a 12-pixel square up to 5 (its
-    outer ring, next to the floor, is edge itself); two
-    slabs side by side at one height are one surface, at heights a step apart two; the floor
-    (background) is not measured."""
+    outer ring, next to the floor, is edge itself); two slabs side by side at one height are
+    one surface, at heights a step apart two; the floor (background) is not measured."""
     x = -np.ones((3, 1, 32, 32), np.float32)
     x[0, 0, 4:28, 10:12] = 0.0  # a bar
     x[1, 0, 10:22, 10:22] = 0.0  # a slab
