@@ -374,7 +374,7 @@ def report(summary: dict, out: Path, seconds: float) -> None:
         print(f"template family: {fam['kept']} kept (piles at x{fam['scale']:g}) of "
               + ", ".join(f"{r['family']} {r['score']:.2f}" if "score" in r
                           else f"{r['family']} (not made)" for r in fam["candidates"])
-              + f" (piles' heights W1 / best + held-out reconstruction / best; "
+              + f" (piles' heights W1 / best + their edges' W1 / best + reconstruction / best; "
               f"{fam['seconds'] / 60:.1f} min); {out}/family/family.png")
     if "not_by_thickness" in summary["sizing"]:
         print(f"rod not resized to the frames' thickness: "
