@@ -16,9 +16,10 @@ to come in proportion to their weights (`WEIGHTS`), and the stage gets its share
            at least `MIN_CENTRE_ITERATIONS`.
 
 A stage that finishes early leaves its time to those after it. The weights are the stages'
-shares of a default loop on a part with no recipe, measured on two cores (T-pieces: shape
-and sizing 5.2 min, family 10.3, piles 5.0, centres 11.7, export 0.2; docs/experiments.md,
-2026-12-06, night), with room for the export's card. With a budget of 0 nothing is cut.
+shares of a default loop on a part with no recipe, measured on two cores (U-clips: shape
+and sizing 5.6 min; Z-brackets: family 14.9 with nine candidates, piles 4.4, centres 10.0,
+export 0.2; docs/experiments.md, 2026-12-07), with room for the export's card. With a budget
+of 0 nothing is cut.
 
 A resumed run gets its budget anew from the moment it starts again: the stages it finished
 cost nothing then, and the budget bounds the run's remaining work.
@@ -33,7 +34,7 @@ DEFAULT_MINUTES = 45.0  # `inseggan loop --minutes`: a default loop took 25-35 m
 # two cores (docs/experiments.md), so the budget cuts it only on a slower or busier machine
 
 # each stage's weight in the split of the time left (see the module's docstring)
-WEIGHTS = {"shape": 0.17, "family": 0.32, "simulate": 0.16, "centres": 0.30, "export": 0.05}
+WEIGHTS = {"shape": 0.15, "family": 0.40, "simulate": 0.13, "centres": 0.28, "export": 0.04}
 ORDER = tuple(WEIGHTS)
 MIN_CENTRE_ITERATIONS = 300  # a net of fewer has not settled (its validation mIoU still rising)
 MARGIN = 0.9  # of a stage's share that iterations are planned to fill: validation and
