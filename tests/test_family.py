@@ -89,6 +89,13 @@ def test_the_refinement_halves_the_step_about_the_best_each_round():
     assert family.refine_scale(measure, w1, 2, more=lambda: False) == w1 and not seen
 
 
+def test_the_score_sums_each_measure_over_the_best_and_the_edges_only_when_asked():
+    rows = [{"pile_w1": 0.02, "edge_w1": 0.4, "recon_l1": 0.3},
+            {"pile_w1": 0.04, "edge_w1": 0.1, "recon_l1": 0.3}]
+    assert family.combined(rows) == pytest.approx([2.0, 3.0])
+    assert family.combined(rows, edges=True) == pytest.approx([6.0, 4.0])
+
+
 def test_a_scaled_template_is_the_same_shape_that_many_times_as_large(tmp):
     """A rod and a convex template (a box, two boxes) scaled by `scaled_model`: every extent x s,
     the rest of the model (its encoder, its poses) as it was; scale 1 is the file itself."""

@@ -190,6 +190,9 @@ def _template_options(g) -> None:
     g.add_argument("--family-iterations", type=int, default=FamilyConfig.fit_iterations,
                    help="--families: iterations of the fitted candidates, box and bars "
                         f"({FamilyConfig.fit_iterations})")
+    g.add_argument("--family-edges", action="store_true",
+                   help="--families: the piles' edge distances' W1 joins each candidate's "
+                        "score (recorded either way)")
     g.add_argument("--family-refine", type=int, default=FamilyConfig.refine,
                    help="--families: rounds of halving the scale step about each candidate's "
                         "best scale (one round for every candidate, the rest for the "
@@ -311,6 +314,7 @@ def _with_family(cfg, opts: dict):
     return replace(cfg, family=FamilyConfig(families=families, piles=opts["family_piles"],
                                             fit_iterations=opts["family_iterations"],
                                             refine=opts["family_refine"],
+                                            edges=opts["family_edges"],
                                             workers=opts["workers"], seed=opts["seed"]))
 
 
@@ -374,7 +378,8 @@ def report(summary: dict, out: Path, seconds: float) -> None:
         print(f"template family: {fam['kept']} kept (piles at x{fam['scale']:g}) of "
               + ", ".join(f"{r['family']} {r['score']:.2f}" if "score" in r
                           else f"{r['family']} (not made)" for r in fam["candidates"])
-              + f" (piles' heights W1 / best + their edges' W1 / best + reconstruction / best; "
+              + " (each scored measure over the best, summed: piles' heights W1, "
+              + ("their edges' W1, " if fam.get("edges") else "") + "reconstruction; "
               f"{fam['seconds'] / 60:.1f} min); {out}/family/family.png")
     if "not_by_thickness" in summary["sizing"]:
         print(f"rod not resized to the frames' thickness: "

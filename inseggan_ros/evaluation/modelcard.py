@@ -548,8 +548,9 @@ def _family_line(card: dict) -> list[str]:
                      for r in fam["candidates"])
     return [f"* **Template family:** {fam['kept']} kept, its piles at x{fam['scale']:g}, of: "
             f"{rows}; the score is the piles' heights' W1 to the frames over the best, plus "
-            "their edge distances' W1 over the best, plus the held-out reconstruction over the "
-            "best (`family/family.png` in the loop's folder); "
+            + ("their edge distances' W1 over the best, plus " if fam.get("edges") else "")
+            + "the held-out reconstruction over the best (`family/family.png` in the loop's "
+            "folder); "
             "each candidate from the top, the front and the side: "
             "![candidates](template_family.png)"]
 

@@ -20,7 +20,8 @@ sized) rod, and keeps the one whose simulated piles look most like the user's fr
   ring   one hexagonal disc with a hole (nuts, washers);
   taper  one disc tapering to 0.4 of its radius (cones, stoppers).
 
-Each candidate is scored by three label-free measures:
+Each candidate is measured by three label-free measures, and scored by the first and the
+last (the second too with `edges`):
   * piles: `piles` scenes of the candidate, at each of `scales` (the whole template scaled;
     beyond the grid's end, step by step, where the best lies there: `scale_search`; with
     `refine`, then the step about each one's best halved: `refine_scale`),
@@ -35,10 +36,12 @@ Each candidate is scored by three label-free measures:
     pixels' distances to the nearest background or depth edge to the frames'
     (`pilematch.edge_distances`): how wide the parts' surfaces are. The heights alone do not
     tell a thin U from two fitted slabs of the same area (U-clips: 0.030 and 0.033); these
-    do (0.029 and 0.81), in the order the models then segment (mIoU 0.68 and 0.47);
+    do (0.029 and 0.81), in the order the models then segment (mIoU 0.68 and 0.47); but among
+    the candidates they kept a U of bars too wide, whose model segmented U-clips worse than
+    the L's (0.465 against 0.516), so they are recorded and not scored by default;
   * held-out reconstruction: the pyramid L1 of the candidate's renders (as made, unscaled),
     placed by its encoder, against frames no fit saw (`shapefit._recon` at level 1).
-The kept family minimises the sum of the three, each divided by its best value over the
+The kept family minimises the sum of those scored, each divided by its best value over the
 candidates: a candidate must both pile like the part and explain the frames. The piles the
 loop then simulates are of the kept candidate at its best scale. Everything is written to
 out/family.json (each candidate's scores, scale and seconds), out/family.png (the scores),
@@ -96,6 +99,9 @@ class FamilyConfig:
     # two fitted boxes' piles nearest the frames (W1 0.029 at x0.92), and their model
     # segmented worse than the L's kept without (mIoU 0.474 against 0.516)
     leaders: int = 3  # the candidates of the best scores after the first round
+    edges: bool = False  # the edge distances' W1 joins the score (each row records it either
+    # way); off: on U-clips it kept three bars as a U, whose piles' model segmented worse than
+    # the L's kept without it (mIoU 0.465 against 0.516, docs/experiments.md, 2026-12-07)
     fit_iterations: int = 500  # of the fitted families (box, bars)
     frames: int = 600  # of the user's frames, at most, for the fits and the heights
     val_frames: int = 80  # held out of them for the reconstruction score
@@ -230,14 +236,17 @@ def refine_scale(measure, w1: dict[float, float], rounds: int, more=lambda: True
     return dict(sorted(w1.items()))
 
 
-SCORED = ("pile_w1", "edge_w1", "recon_l1")  # the measures a candidate's score sums
+SCORED = ("pile_w1", "recon_l1")  # the measures a candidate's score sums
+EDGES = "edge_w1"  # and with `FamilyConfig.edges`, this one
 
 
-def combined(rows: list[dict]) -> list[float]:
-    """Each row's score: each of its measures (SCORED: the heights' W1, the edge distances' W1
-    at the same scale, the held-out reconstruction) over the best candidate's, summed."""
-    best = {k: max(min(r[k] for r in rows), 1e-9) for k in SCORED}
-    return [sum(r[k] / best[k] for k in SCORED) for r in rows]
+def combined(rows: list[dict], edges: bool = False) -> list[float]:
+    """Each row's score: each of its measures (SCORED: the heights' W1 and the held-out
+    reconstruction; with `edges` also the edge distances' W1 at the same scale) over the best
+    candidate's, summed."""
+    keys = SCORED + ((EDGES,) if edges else ())
+    best = {k: max(min(r[k] for r in rows), 1e-9) for k in keys}
+    return [sum(r[k] / best[k] for k in keys) for r in rows]
 
 
 def choose(rod_file, frames: np.ndarray, data, meta, view: dict, out,
@@ -339,7 +348,7 @@ def _refine_leaders(rows: dict, data, meta, view: dict, out: Path, ref: tuple,
     if not cfg.refine or not scored:
         return
     for rounds, top in ((1, len(scored)), (cfg.refine, cfg.leaders)):
-        order = sorted(zip(combined(scored), range(len(scored))))
+        order = sorted(zip(combined(scored, cfg.edges), range(len(scored))))
         for _, i in order[:top]:
             row = scored[i]
             if row.get("refined", 0) >= rounds or time.monotonic() >= deadline:
@@ -364,7 +373,7 @@ def _decide(rows: dict, rod_file, config: dict, out: Path) -> dict:
     if not scored:
         raise ValueError(f"no template family could be made from {rod_file}: "
                          + "; ".join(f"{r['family']}: {r['skipped']}" for r in rows.values()))
-    for r, s in zip(scored, combined(scored)):
+    for r, s in zip(scored, combined(scored, bool(config.get("edges")))):
         r["score"] = round(s, 4)
     best = min(scored, key=lambda r: r["score"])
     choice = {"config": config, "rod": str(rod_file), "kept": best["family"],
@@ -397,7 +406,7 @@ def _plot(rows: list[dict], kept: str, path: Path) -> None:
 
     names = [r["family"] for r in rows]
     fig, axes = plt.subplots(1, 4, figsize=(13, 3))
-    for ax, key, title in zip(axes, (*SCORED, "score"),
+    for ax, key, title in zip(axes, ("pile_w1", EDGES, "recon_l1", "score"),
                               ("piles' heights vs frames (W1)", "edge distances vs frames (W1)",
                                "held-out reconstruction L1", "combined (lower is kept)")):
         ax.bar(names, [r[key] for r in rows],

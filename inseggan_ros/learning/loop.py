@@ -948,6 +948,7 @@ def _export_stage(finished: Path, sim: Path, view: dict, data, cfg: LoopConfig, 
         chosen = json.loads((out / "family" / "family.json").read_text())
         card["template_family"] = {  # each candidate's scores and time, the one kept
             "kept": chosen["kept"], "scale": chosen["scale"], "seconds": chosen["seconds"],
+            "edges": bool(chosen["config"].get("edges")),  # whether the edges' W1 was scored
             "candidates": [{k: r[k] for k in CARD_FAMILY_KEYS if k in r}
                            for r in chosen["rows"]]}
     card["verdict"] = verdict(card)  # the label-free judgement `inseggan ship` reads

@@ -132,7 +132,7 @@ def edge_distances(x: np.ndarray) -> np.ndarray:
     in the user's frames. Why beside the heights: on U-clips piles of two fitted boxes matched
     the frames' heights as well as piles of the true U (W1 0.033 and 0.030) while their edge
     distances were 28 times as far (0.81 against 0.029), and their model segmented 0.21 mIoU
-    worse (docs/experiments.md)."""
+    worse (docs/experiments.md, 2026-12-07; `family.FamilyConfig.edges`)."""
     from scipy.ndimage import distance_transform_edt
 
     x = np.asarray(x, np.float32)
