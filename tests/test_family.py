@@ -122,7 +122,7 @@ def test_a_block_s_frames_choose_a_box_over_the_rod_and_the_taper_and_resume(tmp
     data = BagFrames(BAG, 4)
     x = data.frames(PreprocessConfig.from_dict(state["preprocess_config"]))[0]["x"]
     cfg = family.FamilyConfig(families=("rod", "box", "taper"), piles=12, fit_iterations=60,
-                              workers=2, refine=2, leaders=1)
+                              workers=2)
     out = tmp / "family"
     choice = family.choose(ROD, x, data, None, pile_view(data, state), out, cfg, progress=False)
     assert choice["kept"] == "box", choice["rows"]
@@ -130,13 +130,11 @@ def test_a_block_s_frames_choose_a_box_over_the_rod_and_the_taper_and_resume(tmp
     assert set(rows) == {"rod", "box", "taper"}
     for r in rows.values():
         assert {f"{v:g}" for v in cfg.scales} <= set(r["pile_w1_by_scale"])  # and any steps
-        assert len(r["pile_w1_by_scale"]) <= len(cfg.scales) + cfg.extend \
-            + 2 * r["refined"]  # past its ends, and two a round of refinement
+        assert len(r["pile_w1_by_scale"]) <= len(cfg.scales) + cfg.extend  # past its ends
         assert r["pile_w1"] == pytest.approx(min(r["pile_w1_by_scale"].values()), abs=1e-5)
         assert r["score"] >= 2 - 1e-6
     assert rows["box"]["score"] == min(r["score"] for r in rows.values())
-    # a round for every candidate, the second for the one leader
-    assert {f: r["refined"] for f, r in rows.items()} == {"rod": 1, "box": 2, "taper": 1}
+    assert not any("refined" in r for r in rows.values())  # no refinement by default
     assert choice["part"] == rows["box"]["part"] and Path(choice["part"]).is_file()
     assert checkpoint.load(choice["model"])["model_config"]["renderer"] == "convex"
     assert (out / "family.png").is_file() and (out / "views.png").is_file()
