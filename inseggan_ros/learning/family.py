@@ -358,8 +358,8 @@ def _refine_leaders(rows: dict, data, meta, view: dict, out: Path, ref: tuple,
             edges = {float(v): d for v, d in row["edge_w1_by_scale"].items()}
             measure = _measure(Path(row["model"]), row["family"], data, meta, view, out, ref,
                                cfg, edges)
-            more = (lambda: time.monotonic() < deadline)
-            w1 = refine_scale(measure, w1, rounds - row.get("refined", 0), more)
+            w1 = refine_scale(measure, w1, rounds - row.get("refined", 0),
+                              lambda: time.monotonic() < deadline)
             row.update(_at_best(w1, edges, Path(row["model"]), out / row["family"]),
                        refined=rounds,
                        seconds=round(row["seconds"] + time.monotonic() - t0, 1))

@@ -562,8 +562,7 @@ class ConvexGenerator(TemplateGenerator):
         b = torch.tensor([[float(v) for v in box] for box in boxes], device=dev)
         lo = torch.stack([b[:, 0], b[:, 2], torch.zeros_like(b[:, 0])], 1)
         hi = torch.stack([b[:, 1], b[:, 3], b[:, 4]], 1)
-        xy = torch.tensor([[float(v) for v in j] for j in joint] if hasattr(joint[0], '__len__')
-                          else [float(v) for v in joint], device=dev)
+        xy = torch.tensor(joint, dtype=torch.float32, device=dev)  # (2,) or (K, 2)
         if xy.shape not in ((2,), (K, 2)):
             raise ValueError(f"joint {joint} invalid; valid: one (x, y) or {K} of them")
         xy = xy.expand(K, 2)
