@@ -62,3 +62,33 @@ def test_bar_part_drops_into_a_bin_and_renders(name):
         # in the pile, not hovering: no higher than the walls and a part on top of them
         assert obj.min() > cfg.camera.mount_height - cfg.bin.wall_height - max(
             get_object(name).extent)
+
+
+def test_a_compound_part_s_files_are_shared_and_left_nowhere_else(tmp_path, monkeypatch):
+    """pybullet takes a compound's pieces from mesh files: one folder per part, named by its
+    content, shared by every simulator of it; a simulator made and closed leaves no folder of
+    its own (pool workers end without finalisers, so a folder each piled up in the temp dir);
+    folders unused for a day are removed when another part's is made."""
+    import os
+    import tempfile
+    import time
+
+    from inseggan_ros.sim.scene import PARTS_DIR, PARTS_KEEP_S, part_files
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    parts = get_object("u_clip").parts
+    first = part_files(parts)
+    assert part_files(parts) == first and len(first) == len(parts)
+    assert len({p.rsplit("/", 1)[0] for p in first}) == 1
+    with open(first[0]) as f:
+        assert sum(line.startswith("v ") for line in f) == len(parts[0])
+    assert part_files(get_object("z_bracket").parts)[0].rsplit("/", 1)[0] != \
+        first[0].rsplit("/", 1)[0]
+    before = set(tmp_path.rglob("*"))
+    with BinSimulator(SceneConfig(object="u_clip", instances=2)) as sim:
+        sim.render(0)
+    assert set(tmp_path.rglob("*")) == before
+    old = time.time() - 2 * PARTS_KEEP_S  # unused for two days: removed when a part is made
+    os.utime(first[0].rsplit("/", 1)[0], (old, old))
+    part_files(get_object("t_piece").parts)
+    assert not os.path.exists(first[0]) and len(list((tmp_path / PARTS_DIR).iterdir())) == 2

@@ -13,7 +13,8 @@ from inseggan_ros.core import checkpoint
 from inseggan_ros.learning import family
 from inseggan_ros.learning.piles import BagFrames, pile_view
 from inseggan_ros.learning.family import FAMILIES
-from inseggan_ros.learning.shapefit import ShapeFitConfig, convex_from_rod, rod_box
+from inseggan_ros.learning import shapefit
+from inseggan_ros.learning.shapefit import ShapeFitConfig, convex_from_rod, flat_top, rod_box
 from inseggan_ros.runtime.model import build_models
 from inseggan_ros.runtime.preprocess import PreprocessConfig
 from inseggan_ros.sim.learned import template_pieces_units
@@ -114,6 +115,29 @@ def test_a_scaled_template_is_the_same_shape_that_many_times_as_large(tmp):
                        if k.startswith("pose."))
 
 
+def test_bars_scaled_across_keep_their_height(tmp):
+    """The bars' height is the frames' (`shapefit.flat_top`), so the scale search sizes their
+    outline only: `scaled_model(flat=True)` scales x and y, keeps z; refused on a rod and on
+    tilted pieces, naming what is valid."""
+    state = checkpoint.load(ROD)
+    new, G, E = convex_from_rod(state, ShapeFitConfig(pieces=3, walls=4, start="u"), ROD)
+    u = checkpoint.save(tmp / "u.pt", {**new, "generator": G.state_dict(),
+                                       "encoder": E.state_dict()})
+    assert set(family.FLAT) == {"tee", "ell", "u"}
+    wide = family.scaled_model(u, 1.5, tmp / "wide.pt", flat=True)
+    np.testing.assert_allclose(_extent(wide), _extent(u) * [1.5, 1.5, 1.0], rtol=2e-3,
+                               atol=2e-3)
+    whole = family.scaled_model(u, 1.5, tmp / "whole.pt")
+    np.testing.assert_allclose(_extent(whole), _extent(u) * 1.5, rtol=2e-3, atol=2e-3)
+    with pytest.raises(ValueError, match="a rod is scaled whole; valid: flat with a convex"):
+        family.scaled_model(ROD, 1.5, tmp / "rod.pt", flat=True)
+    tilted = checkpoint.load(u)
+    tilted["generator"]["tilt"][0, 2, 0] = 0.3
+    tilted = checkpoint.save(tmp / "tilted.pt", tilted)
+    with pytest.raises(ValueError, match="its pieces are tilted; valid: flat with upright"):
+        family.scaled_model(tilted, 1.5, tmp / "t.pt", flat=True)
+
+
 def test_a_block_s_frames_choose_a_box_over_the_rod_and_the_taper_and_resume(tmp):
     """On a recording of blocks, from the block's learned rod (round-ended, as tall as it is
     wide), the fitted box's piles look most like the frames: it is kept, at one of the grid's
@@ -177,6 +201,73 @@ def test_bars_start_joined_as_a_t_an_l_or_a_u_from_the_rod_s_box(kind):
         ShapeFitConfig(pieces=1, start="tee")
     with pytest.raises(ValueError, match="start u is 3 bars; valid: pieces 3 and walls 4"):
         ShapeFitConfig(pieces=2, start="u")
+
+
+def test_flat_parts_height_is_the_lowest_mode_of_the_frames_heights():
+    """Parts lying flat at one height (0.3 model units), others leaning higher (spread to 1.5):
+    the bars are as thick as the flat ones, not the lower quartile's; where the heights only
+    fall from the threshold up (no mode seen) or there are too few, None."""
+    rng = np.random.default_rng(0)
+    state = checkpoint.load(ROD)
+    gain = build_models(state, ROD)[1].cfg.height_gain
+    x = np.full((40, 1, 32, 32), -1.0, np.float32)
+    fg = rng.random(x.shape) < 0.5
+    flat = 0.3 + rng.normal(0, 0.02, x.shape)
+    leaning = rng.uniform(0.35, 1.5, x.shape)
+    h = np.where(rng.random(x.shape) < 0.2, flat, leaning)
+    x[fg] = (h[fg] - 1).astype(np.float32)
+    top = flat_top(x, gain)
+    assert top == pytest.approx(0.3 / gain, abs=shapefit.FLAT_BIN / gain)
+    assert np.quantile(h[fg], 0.25) > 0.3 + 2 * shapefit.FLAT_BIN  # what rod_box would take
+    falling = np.full((40, 1, 32, 32), -1.0, np.float32)
+    falling[fg] = (0.24 + rng.exponential(0.3, x.shape)[fg] - 1).astype(np.float32)
+    assert flat_top(falling, gain) is None
+    assert flat_top(x[:, :, :2, :2][:1], gain) is None
+    _, G, _ = convex_from_rod(state, ShapeFitConfig(pieces=3, walls=4, start="u"), x=x)
+    heights = np.concatenate(template_pieces_units(G))[:, 2]
+    assert np.ptp(heights) == pytest.approx(top, rel=0.02)
+
+
+def test_bars_as_wide_as_asked():
+    """`bar_width` scales the bars' width (times the rod's radius), not their length; refused,
+    naming what is valid, outside (0, 2] or on a start that is not bars."""
+    state = checkpoint.load(ROD)
+    a, b, _ = rod_box(build_models(state, ROD)[1])
+    w = b / 2
+    _, G, _ = convex_from_rod(state, ShapeFitConfig(pieces=3, walls=4, start="u",
+                                                    bar_width=0.5))
+    bottom = -a + w / 2
+    assert _inside(G, -a + w / 4, bottom) and _inside(G, a - w / 4, bottom)  # the legs
+    assert not _inside(G, -a + 1.5 * w, bottom)  # inside a leg as wide as the rod's radius
+    assert _inside(G, -0.9 * a, a - w / 2) and _inside(G, 0.9 * a, a - w / 2)  # as long
+    assert not _inside(G, 0.0, a - w / 2 - w)
+    for bad in (0.0, 2.5):
+        with pytest.raises(ValueError, match=r"bar_width .* invalid; valid: in \(0, 2\]"):
+            ShapeFitConfig(pieces=3, walls=4, start="u", bar_width=bad)
+    with pytest.raises(ValueError, match="sizes bars; valid: with a start of tee, ell, u"):
+        ShapeFitConfig(start="box", bar_width=0.5)
+
+
+def test_the_width_search_steps_towards_the_nearer_width_while_it_is_at_an_end():
+    """From the width the bars start at (1, distance 2): one step thinner, then on in the
+    direction that was nearer, at most `steps` widths; none with no time left."""
+    seen = []
+
+    def towards(best):
+        def measure(v):
+            seen.append(v)
+            return 2 + abs(np.log(v / best)) - abs(np.log(1 / best))
+        return measure
+
+    d = family.width_search(towards(0.45), 2)
+    assert list(d) == pytest.approx([0.49, 0.7, 1.0]) and min(d, key=d.get) == 0.49
+    d = family.width_search(towards(1.9), 3)  # wider, up to MAX_BAR_WIDTH (2) and no further
+    assert list(d) == pytest.approx([0.7, 1.0, 1 / 0.7], abs=1e-4)
+    d = family.width_search(towards(0.8), 5)  # bracketed by 0.49 and 1: no further step
+    assert list(d) == pytest.approx([0.49, 0.7, 1.0])
+    seen.clear()
+    assert family.width_search(towards(0.5), 2, more=lambda: False) == {1.0: 2.0} and not seen
+    assert family.width_search(towards(0.5), 0) == {1.0: 2.0}
 
 
 def test_pieces_joined_in_a_chain_need_each_centre_in_the_next_piece():

@@ -64,7 +64,8 @@ from tqdm import tqdm
 from inseggan_ros.core import checkpoint
 from inseggan_ros.evaluation.evaluate import write_json
 from inseggan_ros.learning.pilematch import edge_distances, heights, pile_frames
-from inseggan_ros.learning.shapefit import ShapeFitConfig, _recon, fit_shape, hold_out
+from inseggan_ros.learning.shapefit import (BARS, MAX_BAR_WIDTH, ShapeFitConfig, _recon,
+                                            fit_shape, hold_out)
 from inseggan_ros.runtime.model import RING_WALLS, build_models
 
 # each family: how its template is made from the rod (`shapefit.ShapeFitConfig`; None: the
@@ -81,6 +82,9 @@ FAMILIES: dict[str, ShapeFitConfig | None] = {
     "taper": ShapeFitConfig(pieces=1, walls=8, start="discs", taper=0.4, iterations=0),
 }
 
+# the families scaled across only (`scaled_model`'s flat): their height is the frames' own
+# (`shapefit.flat_top`)
+FLAT = tuple(f for f, c in FAMILIES.items() if c is not None and c.start in BARS)
 # the families fitted to the frames by reconstruction: their template becomes the model's (the
 # others are the piles' part only, and the model keeps the rod, as with `match_piles`)
 FITTED = tuple(f for f, c in FAMILIES.items() if c is not None and c.iterations)
@@ -99,6 +103,8 @@ class FamilyConfig:
     # two fitted boxes' piles nearest the frames (W1 0.029 at x0.92), and their model
     # segmented worse than the L's kept without (mIoU 0.474 against 0.516)
     leaders: int = 3  # the candidates of the best scores after the first round
+    widths: int = 2  # steps of the bars' width search (`width_search`; 0: the width
+    # `shapefit.rod_bars` gives)
     edges: bool = False  # the edge distances' W1 joins the score (each row records it either
     # way); off: on U-clips it kept three bars as a U, whose piles' model segmented worse than
     # the L's kept without it (mIoU 0.465 against 0.516, docs/experiments.md, 2026-12-07)
@@ -113,7 +119,7 @@ class FamilyConfig:
         if not self.families or unknown or len(set(self.families)) != len(self.families):
             raise ValueError(f"families {self.families!r} invalid; valid: one or more of "
                              f"{', '.join(FAMILIES)}, each once")
-        for key in ("extend", "refine", "leaders"):
+        for key in ("extend", "refine", "leaders", "widths"):
             if getattr(self, key) < 0:
                 raise ValueError(f"{key} {getattr(self, key)!r} invalid; valid: >= 0")
         if not self.scales or any(not 0 < v <= MAX_SCALE for v in self.scales) \
@@ -129,12 +135,15 @@ class FamilyConfig:
 
 
 def make_candidate(family: str, rod_file: Path, x: np.ndarray, val: np.ndarray, out: Path,
-                   cfg: FamilyConfig, progress: bool = False) -> Path:
+                   cfg: FamilyConfig, progress: bool = False, width: float = 1.0) -> Path:
     """The model of `family` made from the rod model `rod_file` (fitted to the frames `x`, kept
-    where it reconstructs `val` best, for the fitted families) -> its file."""
+    where it reconstructs `val` best, for the fitted families; bars `width` times as wide as
+    `shapefit.rod_bars` makes them) -> its file."""
     shape = FAMILIES[family]
     if shape is None:
         return Path(rod_file)
+    if width != 1.0:
+        shape = replace(shape, bar_width=width)
     if shape.iterations:
         shape = replace(shape, iterations=cfg.fit_iterations,
                         eval_every=max(1, cfg.fit_iterations // 2))
@@ -142,10 +151,12 @@ def make_candidate(family: str, rod_file: Path, x: np.ndarray, val: np.ndarray, 
     return Path(fit_shape(rod_file, x, out, shape, val_x=val, progress=progress)["model"])
 
 
-def scaled_model(file: Path, s: float, dest: Path) -> Path:
+def scaled_model(file: Path, s: float, dest: Path, flat: bool = False) -> Path:
     """The model `file` with its template `s` times as large (a rod: `sizing.scale_state`; a
-    convex template: every piece's centre and planes scaled about the template's origin),
-    written to `dest`; `file` itself where `s` is 1."""
+    convex template: every piece's centre and planes scaled about the template's origin; with
+    `flat`, across only: its height kept), written to `dest`; `file` itself where `s` is 1.
+    `flat` takes a template of upright prisms (no tilt, turned about z at most: the bars'),
+    whose walls' planes then move with the scale and whose tops and bottoms stay."""
     from inseggan_ros.learning.sizing import scale_state
     from inseggan_ros.runtime.model import CONVEX_MIN_EXTENT, _softplus_inverse
 
@@ -153,13 +164,24 @@ def scaled_model(file: Path, s: float, dest: Path) -> Path:
         return Path(file)
     state = checkpoint.load(file)
     if state["model_config"].get("renderer", "spheres") == "spheres":
+        if flat:
+            raise ValueError(f"{file}: a rod is scaled whole; valid: flat with a convex template")
         scale_state(state, s)
     else:  # each plane at reach + MIN + softplus(extent) from its centre: all of it x s
         g = state["generator"]
-        g["centre"] = g["centre"] * s
+        across = torch.ones(g["extent"].shape[-1], dtype=torch.bool)
+        if flat:
+            if g["tilt"].abs().max() > 0 or g["orientation"][:, :2].abs().max() > 0:
+                raise ValueError(f"{file}: its pieces are tilted; valid: flat with upright "
+                                 "prisms (no tilt, turned about z at most)")
+            across[:2] = False  # `template.prism_normals`: top, bottom, then the walls
+            g["centre"] = g["centre"] * torch.tensor([s, s, 1.0], dtype=g["centre"].dtype)
+        else:
+            g["centre"] = g["centre"] * s
         kept = s * (CONVEX_MIN_EXTENT + torch.nn.functional.softplus(g["extent"].double()))
-        g["extent"] = _softplus_inverse((kept - CONVEX_MIN_EXTENT).clamp_min(1e-4)).to(
+        new = _softplus_inverse((kept - CONVEX_MIN_EXTENT).clamp_min(1e-4)).to(
             g["extent"].dtype)
+        g["extent"] = torch.where(across, new, g["extent"])
     return checkpoint.save(dest, state)
 
 
@@ -295,11 +317,14 @@ def choose(rod_file, frames: np.ndarray, data, meta, view: dict, out,
             rows[family] = {"family": family, "skipped": str(e)}
             continue
         edges: dict[float, float] = {}
-        w1 = scale_search(_measure(file, family, data, meta, view, out, ref, cfg, edges), cfg,
-                          more=lambda own=own: time.monotonic() < own)
+        more = (lambda own=own: time.monotonic() < own)
+        w1 = scale_search(_measure(file, family, out / family, data, meta, view, ref, cfg,
+                                   edges), cfg, more)
         row = {"family": family, "model": str(file), "rod": str(rod_file), "config": config,
-               "recon_l1": held_out_l1(file, val), **_at_best(w1, edges, file, out / family),
-               "seconds": round(time.monotonic() - t0, 1)}
+               "recon_l1": held_out_l1(file, val), **_at_best(w1, edges, file, out / family)}
+        if family in FLAT and cfg.widths:
+            row = _widths(row, Path(rod_file), x, val, data, meta, view, out, ref, cfg, more)
+        row["seconds"] = round(time.monotonic() - t0, 1)
         _log(log, row)
         rows[family] = row
         spent.append(row["seconds"])
@@ -307,16 +332,75 @@ def choose(rod_file, frames: np.ndarray, data, meta, view: dict, out,
     return _decide(rows, rod_file, config, out)
 
 
-def _measure(file: Path, family: str, data, meta, view: dict, out: Path, ref: tuple,
+def _measure(file: Path, family: str, folder: Path, data, meta, view: dict, ref: tuple,
              cfg: FamilyConfig, edges: dict[float, float]):
-    """-> measure(scale): the heights' pile distance of the candidate `file` at that scale (its
-    model written to out/family/scale{scale}.pt), the edge distances' kept in `edges`. The
-    heights' alone choose the scale: they hold the parts' size (height and visible area)."""
+    """-> measure(scale): the heights' pile distance of the candidate `file` of `family` at
+    that scale (its model written to folder/scale{scale}.pt), the edge distances' kept in
+    `edges`. The heights' alone choose the scale: they hold the parts' size (height and
+    visible area)."""
     def measure(v: float) -> float:
-        part = scaled_model(file, v, out / family / f"scale{v:g}.pt")
-        w1, edges[v] = pile_distance(part, data, meta, view, out / family / "piles", ref, cfg)
+        part = scaled_model(file, v, folder / f"scale{v:g}.pt", family in FLAT)
+        w1, edges[v] = pile_distance(part, data, meta, view, folder / "piles", ref, cfg)
         return w1
     return measure
+
+
+WIDTH_STEP = 0.7  # the bars' width search's step (a factor)
+
+
+def width_search(measure, steps: int, more=lambda: True) -> dict[float, float]:
+    """`measure(width)` (a distance, 2 at the width 1 the search starts from) at WIDTH_STEP
+    times it, then, while the best is at an end of what was measured (and `more()`), one
+    more step beyond it, at most `steps` widths in all, each in (0, MAX_BAR_WIDTH]
+    -> {width: distance}."""
+    d = {1.0: 2.0}
+    for _ in range(steps):
+        if not more():
+            break
+        lo, hi = min(d), max(d)
+        best = min(d, key=d.get)
+        if len(d) > 1 and best not in (lo, hi):
+            break
+        v = round(best * WIDTH_STEP if best == lo else best / WIDTH_STEP, 4)
+        if not 0 < v <= MAX_BAR_WIDTH:
+            break
+        d[v] = measure(v)
+    return dict(sorted(d.items()))
+
+
+def _widths(row: dict, rod_file: Path, x, val, data, meta, view: dict, out: Path, ref: tuple,
+            cfg: FamilyConfig, more) -> dict:
+    """A bars candidate's `row` (made at the width `shapefit.rod_bars` gives, its outline sized
+    by the scale search) -> the row of the width whose piles' heights and edge distances (each
+    over the first width's: the parts' visible area and the width of their surfaces) lie
+    nearest the frames (`width_search`), "widths" recording each width's best scale and
+    distances. Each width is piled at the scale that keeps the first's area (its best over the
+    width's square root) and a grid step either side, searched beyond as the scales are.
+
+    Why: the bars start as wide as the rod's radius, and the scale search sizes the outline,
+    their width with it: on U-clips the T sized so measured the heights' W1 best of all
+    (0.025) with its edges' W1 0.43 (docs/experiments.md)."""
+    family, rows = row["family"], {1.0: row}
+    step = cfg.scales[-1] / cfg.scales[-2] if len(cfg.scales) > 1 else 1 / 0.85
+
+    def measure(f: float) -> float:
+        folder = out / family / f"width{f:g}"
+        file = make_candidate(family, rod_file, x, val, folder, cfg, width=f)
+        s0 = row["scale"] / math.sqrt(f)
+        grid = tuple(v for v in (round(s0 / step, 4), round(s0, 4), round(s0 * step, 4))
+                     if v <= MAX_SCALE)
+        edges: dict[float, float] = {}
+        w1 = scale_search(_measure(file, family, folder, data, meta, view, ref, cfg, edges),
+                          replace(cfg, scales=grid), more)
+        rows[f] = {**row, "model": str(file), "folder": str(folder),
+                   "recon_l1": held_out_l1(file, val), **_at_best(w1, edges, file, folder)}
+        return rows[f]["pile_w1"] / row["pile_w1"] + rows[f][EDGES] / max(row[EDGES], 1e-9)
+    d = width_search(measure, cfg.widths, more)
+    best = min(d, key=d.get)
+    return {**rows[best], "width": best,
+            "widths": {f"{f:g}": {"scale": r["scale"], "pile_w1": round(r["pile_w1"], 5),
+                                  EDGES: round(r[EDGES], 5), "distance": round(d[f], 4)}
+                       for f, r in rows.items()}}
 
 
 def _at_best(w1: dict[float, float], edges: dict[float, float], file: Path,
@@ -356,11 +440,12 @@ def _refine_leaders(rows: dict, data, meta, view: dict, out: Path, ref: tuple,
             t0 = time.monotonic()
             w1 = {float(v): d for v, d in row["pile_w1_by_scale"].items()}
             edges = {float(v): d for v, d in row["edge_w1_by_scale"].items()}
-            measure = _measure(Path(row["model"]), row["family"], data, meta, view, out, ref,
+            folder = Path(row.get("folder", out / row["family"]))
+            measure = _measure(Path(row["model"]), row["family"], folder, data, meta, view, ref,
                                cfg, edges)
             w1 = refine_scale(measure, w1, rounds - row.get("refined", 0),
                               lambda: time.monotonic() < deadline)
-            row.update(_at_best(w1, edges, Path(row["model"]), out / row["family"]),
+            row.update(_at_best(w1, edges, Path(row["model"]), folder),
                        refined=rounds,
                        seconds=round(row["seconds"] + time.monotonic() - t0, 1))
             _log(log, row)

@@ -55,6 +55,7 @@ from inseggan_ros.runtime.model import build_models
 
 BARS = {"tee": 2, "ell": 2, "u": 3}  # the starts of bars joined (`rod_bars`): their pieces
 STARTS = ("box", "discs", *BARS)
+MAX_BAR_WIDTH = 2.0  # `ShapeFitConfig.bar_width`, at most
 
 
 @dataclass(frozen=True)
@@ -81,6 +82,8 @@ class ShapeFitConfig:
     taper: float = 1.0  # with start "discs": below 1, the one disc (pieces 1) a pyramid's
     # frustum whose far end's radius is this fraction of its radius (a cone, a stopper:
     # `ConvexGenerator.init_discs`); 1: a straight disc
+    bar_width: float = 1.0  # with a start of bars: their width, times the rod's radius
+    # (`rod_bars`; the family's width search tries others)
     seed: int = 0
 
     def __post_init__(self):
@@ -113,6 +116,12 @@ class ShapeFitConfig:
             raise ValueError(f"taper {self.taper:g} makes a frustum of one disc; valid: with "
                              f"start discs, pieces 1 and no hole (not {self.start}, "
                              f"{self.pieces}, hole {self.hole:g})")
+        if not 0 < self.bar_width <= MAX_BAR_WIDTH:
+            raise ValueError(f"bar_width {self.bar_width!r} invalid; valid: in (0, "
+                             f"{MAX_BAR_WIDTH:g}] (times the rod's radius)")
+        if self.bar_width != 1 and self.start not in BARS:
+            raise ValueError(f"bar_width {self.bar_width:g} sizes bars; valid: with a start of "
+                             f"{', '.join(BARS)} (not {self.start})")
         for key in ("encoder_lr", "template_lr"):
             if not 0 < getattr(self, key) < 1:
                 raise ValueError(f"{key} {getattr(self, key)!r} invalid; valid: in (0, 1)")
@@ -147,15 +156,49 @@ def rod_box(G: SphereGenerator, x=None) -> tuple[float, float, float]:
     return half_len, rad, thick
 
 
-def rod_bars(G: SphereGenerator, kind: str, x=None) -> tuple[list, list]:
+FLAT_BIN = 0.04  # model-input units (1 mm at the default 5 cm max_height): `flat_top`'s bins
+FLAT_SPAN = 3  # bins either side a mode must top
+
+
+def flat_top(x, height_gain: float) -> float | None:
+    """Frames `x` ((N, 1, H, W) model inputs) -> the height (template units) of the lowest mode
+    of their foreground heights, the top of a part lying flat on the floor: the first bin of
+    FLAT_BIN (smoothed over three; then the fullest of it and its two neighbours, as they
+    were counted) above every other within FLAT_SPAN, past the first
+    foreground bin and fuller than it (there the threshold cut the heights: falling from it,
+    they show no mode). None where there is none. Why not the lower quartile (`rod_box`):
+    parts leaning on each other lift it; on U-clips (6 mm thick) it was 11.6 mm, and the
+    bars made so, scaled whole, piled nearest the frames 13 mm thick and 22 mm across
+    instead of 6 and 36 (docs/experiments.md)."""
+    x = np.asarray(x, np.float32)
+    h = x[x > -1 + 1e-4] + 1
+    if h.size < 100:
+        return None
+    counts, edges = np.histogram(h, bins=np.arange(0.0, 2.0 + FLAT_BIN, FLAT_BIN))
+    smooth = np.convolve(counts, np.ones(3) / 3, mode="same")
+    first = int(np.argmax(counts > 0))
+    for i in range(first + 1, len(smooth) - FLAT_SPAN):
+        window = smooth[max(first, i - FLAT_SPAN):i + FLAT_SPAN + 1]
+        if counts[i] > counts[first] and smooth[i] >= window.max():
+            i = i - 1 + int(np.argmax(counts[i - 1:i + 2]))  # the fullest bin about it
+            return float((edges[i] + FLAT_BIN / 2) / height_gain)
+    return None
+
+
+def rod_bars(G: SphereGenerator, kind: str, x=None, width: float = 1.0) -> tuple[list, list]:
     """Bars from the rod's box (`rod_box`: half-length a, radius b, half-thickness c): one 2a
     long across the top, and joined to it, each 2a long, one bar down from its middle (a T,
     "tee"), from its end (an L, "ell"), or from both its ends (a U, "u": three pieces), every
-    bar b wide (together about the rod's footprint) and 2c high, the whole outline centred on
-    the template's origin -> `ConvexGenerator.init_boxes`' (boxes, joints). The proportions
-    are a start: the fit and the scale search (`family`) size them."""
+    bar b wide (together about the rod's footprint; `width` times that) and 2c high, the whole
+    outline centred on the template's origin -> `ConvexGenerator.init_boxes`' (boxes, joints).
+    With frames `x`, c is half their flat parts' height (`flat_top`) where they show one: the
+    bars' thickness is the frames', and the family's scale and width searches size their
+    outline only (`family.FLAT`, `family.width_search`)."""
     a, b, c = rod_box(G, x)
-    w = max(b / 2, 2 * CONVEX_MIN_EXTENT)
+    flat = flat_top(x, G.cfg.height_gain) if x is not None else None
+    if flat is not None:
+        c = max(flat / 2, 2 * CONVEX_MIN_EXTENT)
+    w = max(width * b / 2, 2 * CONVEX_MIN_EXTENT)
     a = max(a, 2 * w)
     if kind not in BARS:
         raise ValueError(f"bars {kind!r} invalid; valid: {', '.join(BARS)}")
@@ -293,7 +336,8 @@ def convex_from_rod(state: dict, cfg: ShapeFitConfig, source="checkpoint", x=Non
         else:
             G.init_discs(piece_order(discs), 0.0, cfg.taper)
     elif cfg.start in BARS:
-        G.init_boxes(*rod_bars(rod, cfg.start, x if cfg.thickness == "data" else None))
+        G.init_boxes(*rod_bars(rod, cfg.start, x if cfg.thickness == "data" else None,
+                               cfg.bar_width))
     else:
         G.init_box(rod_box(rod, x if cfg.thickness == "data" else None))
     # without the rod encoder's distillation record: the encoder's next fit (the loop's) is

@@ -7,6 +7,7 @@ alone, not on what the simulator did before (the same seed gives the same bytes)
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import os
 import sys
 import tempfile
@@ -134,6 +135,58 @@ def _quiet_c_output():
             os.close(fd)
 
 
+PARTS_DIR = "inseggan_sim_parts"  # under the system's temp dir: `part_files`' folders
+PARTS_KEEP_S = 86400.0  # a part's folder unused this long is removed when another is made
+
+
+def part_files(parts) -> list[str]:
+    """A part's convex pieces ((V, 3) vertices each) -> OBJ files of their hulls, which is how
+    pybullet takes a compound's pieces. They lie in a folder named by their content under
+    PARTS_DIR in the system's temp dir, written once (each file atomically) and shared by
+    every simulator of the part; making one removes the folders unused for PARTS_KEEP_S. Why
+    not a folder per simulator, removed when it closes: pool workers end without running
+    finalisers, and their folders piled up (thousands a day of loops)."""
+    texts = ["".join([*(f"v {x:.6f} {y:.6f} {z:.6f}\n" for x, y, z in part),
+                      *(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in ConvexHull(part).simplices)])
+             for part in parts]
+    key = hashlib.sha256("\0".join(texts).encode()).hexdigest()[:16]
+    root = os.path.join(tempfile.gettempdir(), PARTS_DIR)
+    folder = os.path.join(root, key)
+    if not os.path.isdir(folder):
+        _prune(root)
+        os.makedirs(folder, exist_ok=True)
+    os.utime(folder)  # in use: not pruned
+    paths = []
+    for i, text in enumerate(texts):
+        path = os.path.join(folder, f"part{i}.obj")
+        if not os.path.isfile(path) or _read(path) != text:
+            tmp = f"{path}.{os.getpid()}.tmp"
+            with open(tmp, "w") as f:
+                f.write(text)
+            os.replace(tmp, path)
+        paths.append(path)
+    return paths
+
+
+def _prune(root: str) -> None:
+    """Remove `part_files`' folders under `root` unused for PARTS_KEEP_S (another process's
+    removal or a file in use is left as it is)."""
+    import shutil
+
+    now = time.time()
+    for entry in os.scandir(root) if os.path.isdir(root) else ():
+        try:
+            if entry.is_dir() and now - entry.stat().st_mtime > PARTS_KEEP_S:
+                shutil.rmtree(entry.path, ignore_errors=True)
+        except OSError:
+            pass
+
+
+def _read(path: str) -> str:
+    with open(path) as f:
+        return f.read()
+
+
 class BinSimulator:
     """Owns one pybullet physics client; `render(seed)` makes one scene."""
 
@@ -144,15 +197,7 @@ class BinSimulator:
         self.p = pybullet
         self.cfg = config
         self.spec: ObjectSpec = get_object(config.object)
-        self._tmpdir = tempfile.TemporaryDirectory(prefix="inseggan_sim_")
-        self._part_files = []
-        for i, part in enumerate(self.spec.parts):
-            path = os.path.join(self._tmpdir.name, f"part{i}.obj")
-            with open(path, "w") as f:
-                f.writelines(f"v {x:.6f} {y:.6f} {z:.6f}\n" for x, y, z in part)
-                f.writelines(f"f {a + 1} {b + 1} {c + 1}\n"
-                             for a, b, c in ConvexHull(part).simplices)
-            self._part_files.append(path)
+        self._part_files = part_files(self.spec.parts) if len(self.spec.parts) > 1 else []
         self._view = config.camera.view_matrix()
         self._proj = config.camera.projection_matrix()
         self.last_piles = 0  # how many piles the last scene took (1: its seed's own)
@@ -161,7 +206,6 @@ class BinSimulator:
         if self.client is not None:
             self.p.disconnect(physicsClientId=self.client)
             self.client = None
-            self._tmpdir.cleanup()
 
     def __enter__(self):
         return self
