@@ -197,6 +197,9 @@ def _template_options(g) -> None:
                    help="--families: rounds of halving the scale step about each candidate's "
                         "best scale (one round for every candidate, the rest for the "
                         f"{FamilyConfig.leaders} leaders; {FamilyConfig.refine}: none)")
+    g.add_argument("--family-widths", type=int, default=FamilyConfig.widths,
+                   help="--families: steps of the bars' width search (T, L and U; "
+                        f"{FamilyConfig.widths}; 0: none)")
 
 
 def _families(text: str) -> tuple[str, ...]:
@@ -314,6 +317,7 @@ def _with_family(cfg, opts: dict):
     return replace(cfg, family=FamilyConfig(families=families, piles=opts["family_piles"],
                                             fit_iterations=opts["family_iterations"],
                                             refine=opts["family_refine"],
+                                            widths=opts["family_widths"],
                                             edges=opts["family_edges"],
                                             workers=opts["workers"], seed=opts["seed"]))
 

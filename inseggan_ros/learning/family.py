@@ -13,7 +13,9 @@ sized) rod, and keeps the one whose simulated piles look most like the user's fr
          pieces (a bracket, a plate with a step);
   tee    two bars joined as a T, each as long as the rod and half as wide (`shapefit.rod_bars`),
          not fitted: fitted by reconstruction, two bars (started as copies of one box, as a T
-         or as an L alike) became one slab on T-pieces' frames (docs/experiments.md);
+         or as an L alike) became one slab on T-pieces' frames (docs/experiments.md); as
+         thick as the frames' flat-lying parts (`shapefit.flat_top`), and so scaled across
+         only (FLAT), their width then searched (`width_search`);
   ell    two bars joined as an L, so;
   u      three bars joined as a U, so (clips, staples, brackets);
   discs  the rod's radius profile cut into two flat-ended discs (a head on a shaft);
@@ -351,7 +353,7 @@ WIDTH_STEP = 0.7  # the bars' width search's step (a factor)
 def width_search(measure, steps: int, more=lambda: True) -> dict[float, float]:
     """`measure(width)` (a distance, 2 at the width 1 the search starts from) at WIDTH_STEP
     times it, then, while the best is at an end of what was measured (and `more()`), one
-    more step beyond it, at most `steps` widths in all, each in (0, MAX_BAR_WIDTH]
+    more step beyond it: at most `steps` widths measured, each in (0, MAX_BAR_WIDTH]
     -> {width: distance}."""
     d = {1.0: 2.0}
     for _ in range(steps):
@@ -387,14 +389,14 @@ def _widths(row: dict, rod_file: Path, x, val, data, meta, view: dict, out: Path
         folder = out / family / f"width{f:g}"
         file = make_candidate(family, rod_file, x, val, folder, cfg, width=f)
         s0 = row["scale"] / math.sqrt(f)
-        grid = tuple(v for v in (round(s0 / step, 4), round(s0, 4), round(s0 * step, 4))
-                     if v <= MAX_SCALE)
+        grid = tuple(sorted({min(round(s0 * k, 4), MAX_SCALE) for k in (1 / step, 1, step)}))
         edges: dict[float, float] = {}
         w1 = scale_search(_measure(file, family, folder, data, meta, view, ref, cfg, edges),
                           replace(cfg, scales=grid), more)
         rows[f] = {**row, "model": str(file), "folder": str(folder),
                    "recon_l1": held_out_l1(file, val), **_at_best(w1, edges, file, folder)}
-        return rows[f]["pile_w1"] / row["pile_w1"] + rows[f][EDGES] / max(row[EDGES], 1e-9)
+        return (rows[f]["pile_w1"] / max(row["pile_w1"], 1e-9)
+                + rows[f][EDGES] / max(row[EDGES], 1e-9))
     d = width_search(measure, cfg.widths, more)
     best = min(d, key=d.get)
     return {**rows[best], "width": best,
