@@ -542,6 +542,7 @@ def _family_line(card: dict) -> list[str]:
     if not fam:
         return []
     rows = ", ".join(f"{r['family']} {r['score']:.2f} (W1 {r['pile_w1']:.3f} at x{r['scale']:g}, "
+                     + (f"bars x{r['width']:g} wide, " if "width" in r else "")
                      + (f"edges' W1 {r['edge_w1']:.3f}, " if "edge_w1" in r else "")
                      + f"reconstruction {r['recon_l1']:.3f}, {r['seconds'] / 60:.1f} min)"
                      if "score" in r else f"{r['family']} not made ({r['skipped']})"

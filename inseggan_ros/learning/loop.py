@@ -929,8 +929,9 @@ def _finishing_stages(finished: Path, sim: Path, view: dict, data, out: Path, cf
     return finished
 
 
+# of each candidate, on the card (width: a bars candidate's, times what `shapefit.rod_bars` makes)
 CARD_FAMILY_KEYS = ("family", "scale", "pile_w1", "pile_w1_by_scale", "edge_w1", "recon_l1",
-                    "score", "seconds", "refined", "skipped")  # of each candidate, on the card
+                    "score", "seconds", "refined", "width", "skipped")
 
 
 def _export_stage(finished: Path, sim: Path, view: dict, data, cfg: LoopConfig, out: Path,
