@@ -425,8 +425,11 @@ def test_the_default_loop_chooses_the_template_family_then_piles_it_once(tmp):
     assert {"rod", "box", "bars"} <= {r["family"] for r in scored}
     for r in scored:
         assert r["pile_w1"] > 0 and r["recon_l1"] > 0 and r["seconds"] > 0
-        # the grid's four scales, and steps past an end where the share holds them
-        assert 4 <= len(r["pile_w1_by_scale"]) <= 4 + FamilyConfig.extend
+        # the grid's four scales, and steps past an end where the share holds them; a bars
+        # candidate made thinner or wider: the three scales about its area's, and such steps
+        assert ("width" in r) == (r["family"] in ("tee", "ell", "u"))
+        n = 3 if r.get("width", 1) != 1 else 4
+        assert n <= len(r["pile_w1_by_scale"]) <= n + FamilyConfig.extend
         assert "refined" not in r  # no refinement by default
         assert r["score"] >= 2 - 1e-6  # each measure over its best: 1 + 1 at least
     kept = min(scored, key=lambda r: r["score"])
