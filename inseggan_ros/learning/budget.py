@@ -17,8 +17,9 @@ to come in proportion to their weights (`WEIGHTS`), and the stage gets its share
 
 A stage that finishes early leaves its time to those after it. The weights are the stages'
 shares of a default loop on a part with no recipe, measured on two cores (U-clips: shape
-and sizing 5.6 min; Z-brackets: family 14.9 with nine candidates, piles 4.4, centres 10.0,
-export 0.2; docs/experiments.md, 2026-12-07), with room for the export's card. With a budget
+and sizing 5.6 min; T-pieces: family 19.4 with nine candidates and the bars' width search,
+piles 4.6, centres 10.6, export 0.2; docs/experiments.md, 2026-12-07), with room for the
+export's card. With a budget
 of 0 nothing is cut.
 
 A resumed run gets its budget anew from the moment it starts again: the stages it finished
@@ -30,11 +31,11 @@ import math
 import time
 from dataclasses import dataclass, field
 
-DEFAULT_MINUTES = 45.0  # `inseggan loop --minutes`: a default loop took 25-35 minutes on
+DEFAULT_MINUTES = 45.0  # `inseggan loop --minutes`: a default loop took 36-41 minutes on
 # two cores (docs/experiments.md), so the budget cuts it only on a slower or busier machine
 
 # each stage's weight in the split of the time left (see the module's docstring)
-WEIGHTS = {"shape": 0.15, "family": 0.40, "simulate": 0.13, "centres": 0.28, "export": 0.04}
+WEIGHTS = {"shape": 0.13, "family": 0.47, "simulate": 0.11, "centres": 0.26, "export": 0.03}
 ORDER = tuple(WEIGHTS)
 MIN_CENTRE_ITERATIONS = 300  # a net of fewer has not settled (its validation mIoU still rising)
 MARGIN = 0.9  # of a stage's share that iterations are planned to fill: validation and
