@@ -65,7 +65,7 @@ def test_bar_part_drops_into_a_bin_and_renders(name):
 
 
 def test_a_compound_part_s_files_are_shared_and_left_nowhere_else(tmp_path, monkeypatch):
-    """pybullet takes a compound's pieces from mesh files: one folder per part, named by its
+    """A compound part's pieces go to pybullet as mesh files: one folder per part, named by its
     content, shared by every simulator of it; a simulator made and closed leaves no folder of
     its own (pool workers end without finalisers, so a folder each piled up in the temp dir);
     folders unused for a day are removed when another part's is made."""
