@@ -12,6 +12,7 @@ import yaml
 from conftest import REPO, run_cli
 
 from inseggan_ros.core import checkpoint
+from inseggan_ros.evaluation import vote_scale
 from inseggan_ros.learning.family import FAMILIES, FamilyConfig
 from inseggan_ros.learning import losses
 from inseggan_ros.data.datasets import load_bag, load_sim_split
@@ -107,7 +108,8 @@ def test_a_tiny_loop_explains_held_out_scenes_of_its_shape_better_than_its_start
     assert card["distillation"]["previous"]["config"]["labels"] == "simulated"
     assert checkpoint.load(out / "self" / "last.pt")["distill"]["iteration"] == 10
     # and again with centre votes: taught on the same piles after the self-fit, shipped on,
-    # with no superpixel vote chosen over them (their training: tests/test_centres.py)
+    # the vote over them run only where the user's frames' labels leave their height edges
+    # far more than the piles' (`vote_scale.over_centres`; their training: test_centres.py)
     p = run_cli(*args, "--self-frames", "8", "--self-iterations", "10", "--centre-iterations",
                 "20", check=True, timeout=900)
     again = json.loads((out / "summary.json").read_text())
@@ -115,8 +117,12 @@ def test_a_tiny_loop_explains_held_out_scenes_of_its_shape_better_than_its_start
     shipped = checkpoint.load(out / "model" / "model.pt")
     assert shipped["centre_net"]["width"] == 16 and shipped["inference"]["centre_votes"] == "on"
     assert shipped["centre_net"]["sim"] == str(out / "sim")
-    assert again["vote_scale"]["note"] == "no vote over centre votes"
-    assert "superpixel vote: not chosen (no vote over centre votes)" in p.stdout
+    vote = again["vote_scale"]
+    assert vote["setting"] == "centre_superpixel_scale" and set(vote["off_edge"]) == {
+        "piles", "frames"} and vote["user_frames"] > 0, vote
+    assert shipped["inference"]["centre_superpixel_scale"] == vote["scale"]
+    assert vote["scale"] == 0 or vote["mismatch"]
+    assert f"superpixel vote: {vote_scale.describe(vote)}" in p.stdout
     assert "instances from the centre votes" in (out / "model" / "README.md").read_text()
     # taught instead on the user's 8 training frames labelled by the model itself (1 held out)
     p = run_cli(*args, "--self-frames", "8", "--self-iterations", "10", "--centre-iterations",

@@ -484,7 +484,8 @@ def test_settings_have_one_name_as_field_parameter_and_flag():
     assert names == ["refine_steps", "refine_hypotheses", "refine_keep", "refine_swaps",
                      "smooth_iters",
                      "smooth_full_res_iters", "encoder_precision", "superpixel_scale",
-                     "split_scale", "label_head", "centre_votes", "centre_precision"]
+                     "split_scale", "label_head", "centre_votes", "centre_precision",
+                     "centre_superpixel_scale"]
     parser = argparse.ArgumentParser()
     settings.add_flags(parser, "(default: the model's)")
     args = parser.parse_args(["--refine-hypotheses", "8", "--smooth-full-res-iters", "0",

@@ -33,3 +33,17 @@ def test_a_model_that_explains_nothing_fails_with_its_figures():
 
 def test_a_card_without_figures_has_nothing_to_judge():
     assert verdict.verdict({}) == {"ok": True, "problems": []}
+
+
+def test_labels_that_leave_the_frames_edges_far_more_than_the_piles_fail_by_name():
+    """The over-centre-votes check (`vote_scale.over_centres`) found the template is not the
+    part's shape: the verdict says so with both shares and the vote's scale."""
+    card = json.loads((MODELS / TILTED[0] / "card.json").read_text())
+    card["vote_scale"] = {"setting": "centre_superpixel_scale", "scale": 120, "mismatch": True,
+                          "off_edge": {"piles": 0.015, "frames": 0.092}}
+    v = verdict.verdict(card)
+    assert not v["ok"] and len(v["problems"]) == 1
+    assert "0.092" in v["problems"][0] and "0.015" in v["problems"][0]
+    assert "scale 120" in v["problems"][0]
+    card["vote_scale"]["mismatch"] = False
+    assert verdict.verdict(card)["ok"]

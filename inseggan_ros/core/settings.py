@@ -104,12 +104,18 @@ class InferenceConfig:
     centre_votes: str = field(default="off", metadata=_doc(
         "the instances from the model's centre votes (on: a small network's heatmap of part "
         "centres and each pixel's offset to its part's centre, each instance given the id of "
-        "the render it overlaps most; then smoothing and split, no superpixel vote; models "
-        "without the network: off) or from the z-buffer (off)", choices=CENTRE_VOTES))
+        "the render it overlaps most; then smoothing, the vote only at "
+        "centre_superpixel_scale, and split; models without the network: off) or from the "
+        "z-buffer (off)", choices=CENTRE_VOTES))
     centre_precision: str = field(default="float32", metadata=_doc(
         "the centre-vote network's arithmetic (its last layer always float32): float32, "
         "bfloat16, or auto (bfloat16 where the CPU or GPU computes it natively, else float32); "
         "a model stores the one its validation split chose", choices=PRECISIONS))
+    centre_superpixel_scale: int = field(default=0, metadata=_doc(
+        "with centre votes on, their labels voted within depth superpixels of this scale as "
+        "superpixel_scale votes the z-buffer's (0 = off): `inseggan loop` sets it where the "
+        "labels cross the frames' height edges far more often than its own piles' "
+        "(evaluation/vote_scale.py)", 0, 10000))
 
     def __post_init__(self):
         for name, ok, valid in (
@@ -119,6 +125,8 @@ class InferenceConfig:
                 ("refine_swaps", self.refine_swaps >= 0, ">= 0 (0 = off)"),
                 ("superpixel_scale", self.superpixel_scale >= 0, ">= 0 (0 = off)"),
                 ("split_scale", self.split_scale >= 0, ">= 0 (0 = off)"),
+                ("centre_superpixel_scale", self.centre_superpixel_scale >= 0,
+                 ">= 0 (0 = off)"),
                 ("encoder_precision", self.encoder_precision in PRECISIONS,
                  ", ".join(PRECISIONS)),
                 ("label_head", self.label_head in LABEL_HEAD, ", ".join(LABEL_HEAD)),
@@ -133,9 +141,12 @@ class InferenceConfig:
 
     @property
     def vote_scale(self) -> int:
-        """The superpixel vote's scale these settings run: none over centre votes (their labels
-        already follow the heights; the vote lowered the cylinder's, docs/experiments.md)."""
-        return 0 if self.centre_votes == "on" else self.superpixel_scale
+        """The superpixel vote's scale these settings run: over centre votes their own,
+        `centre_superpixel_scale`, off unless set (their labels already follow the heights
+        where the model's part is the frames': the vote lowered the cylinder's and every shipped
+        tilted model's, docs/experiments.md)."""
+        return self.centre_superpixel_scale if self.centre_votes == "on" \
+            else self.superpixel_scale
 
     def to_dict(self) -> dict:
         return {**{f.name: getattr(self, f.name) for f in fields(self) if f.name != "smooth"},

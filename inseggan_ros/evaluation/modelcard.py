@@ -360,8 +360,9 @@ def _label_free_segmenter(checkpoint_path, state: dict, calib: dict, inference,
                           vote_piles: dict | None, vote_scales):
     """The segmenter a label-free export ships: `inference` (default: the checkpoint's), tau
     calibrated on `calib` without labels (a label head's own where the model has one), the
-    vote's scale chosen on `vote_piles` where given -> (segmenter, {tau: score}, the vote's
-    choice or None)."""
+    vote's scale chosen on `vote_piles` where given (over centre votes, whether it runs at all
+    by `calib`'s labels against the piles': `vote_scale.over_centres`) -> (segmenter, {tau:
+    score}, the vote's choice or None)."""
     from dataclasses import replace
 
     from inseggan_ros.evaluation import selfcheck
@@ -375,10 +376,11 @@ def _label_free_segmenter(checkpoint_path, state: dict, calib: dict, inference,
     if state.get("label_head"):  # a label head was trained on the z-buffer labels of its tau
         seg.tau = float(state["label_head"]["tau"])
     vote = None
-    if vote_piles is not None:  # the renders, hence tau, do not depend on the vote
+    if vote_piles is not None:  # the renders, hence tau, do not depend on the vote; over
+        # centre votes, `calib` (the user's frames) tells whether it runs at all
         vote = vote_scale.choose(seg, vote_piles, vote_scale.SCALES if vote_scales is None
-                                 else vote_scales)
-        seg.inference = replace(seg.inference, superpixel_scale=vote["scale"])
+                                 else vote_scales, frames=calib)
+        seg.inference = replace(seg.inference, **{vote["setting"]: vote["scale"]})
     return seg, tau_scores, vote
 
 

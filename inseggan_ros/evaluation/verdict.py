@@ -3,7 +3,9 @@
 A loop can fail without knowing the truth: its renders cover little of the parts the frames
 show (coverage), draw parts where the frames have none (spill), its centre votes score low on
 their own held-out piles, or the rendered foreground matches the input's poorly at every
-threshold. The shipped recording-made models measure coverage 0.68-0.92, spill 0.12-0.28, centre
+threshold, or its labels cross the frames' height edges far more often than its own piles'
+(the template is not the part's shape: `vote_scale.over_centres`). The shipped recording-made
+models measure coverage 0.68-0.92, spill 0.12-0.28, centre
 votes 0.75-0.92 on their piles and a foreground IoU of 0.56-0.82 at their tau
 (models/*/card.json); a model whose coverage is 0.05 explains nothing. Each rule here sits well
 below the worst shipped model, so a warning means a model that does not explain its frames, not
@@ -42,6 +44,16 @@ def problems(card: dict) -> list[str]:
         out.append(f"centre votes mIoU {votes:.3f} < {MIN_CENTRE_MIOU} on their own piles: the "
                    "simulated piles are hard to separate even with their labels; the learned "
                    "part may be wrong (see the card's shape views)")
+    vote = card.get("vote_scale") or {}
+    if vote.get("mismatch"):
+        off = vote["off_edge"]
+        out.append(f"the labels' boundaries leave the frames' height edges {off['frames']:.3f} "
+                   f"of the time, against {off['piles']:.3f} on the model's own piles: the kept "
+                   "template is not the part's shape (see template_family.png), and the centre "
+                   "votes cut across parts; their labels are voted within depth superpixels "
+                   f"(scale {vote['scale']}) to follow the frames' edges. Check the segmentations "
+                   "(qualitative.png) before use, or try `inseggan loop --families` with one "
+                   "family named")
     fg = _best_foreground_iou(card)
     if fg is not None and fg < MIN_FOREGROUND_IOU:
         out.append(f"foreground IoU {fg:.3f} < {MIN_FOREGROUND_IOU} at every tau: the model's "

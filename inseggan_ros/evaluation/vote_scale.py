@@ -11,7 +11,19 @@ each candidate scale there, the model's other settings as it ships, and keeps th
 the settings' own scale stays unless another beats it there by more than TOLERANCE and by
 SIGNIFICANCE standard errors of its gain over the piles (a flat curve is noise, not a reason
 to move: on a tilted bolt loop's piles scale 35 beat 50 by 0.0022, and scored 0.009 below it
-on the recording). Nothing here imports ROS.
+on the recording).
+
+Over centre votes the vote is off: where the model's part is the frames' part, their labels
+already follow its edges, and the vote only merges touching parts (it lowered every shipped
+tilted model's mIoU on fresh recordings, by 0.000-0.020 at scale 50 and 0.019-0.097 at 160).
+Where the kept template is not the part's shape (Z-brackets piled as a U, U-clips as an L),
+the net's instances cut across the parts, and the vote gains 0.05-0.08 (docs/experiments.md,
+2026-12-07). The piles cannot show which case holds (they are of the template), but the
+frames can: there the labels' boundaries leave the heights' edges (`off_edge`) far more often
+than on the piles. Where they do (`MISMATCH`), the vote over centre votes is turned on
+(`centre_superpixel_scale`) at the largest scale that costs the piles at most `VOTE_COST`
+(coarser superpixels follow the frames' edges over larger surfaces, and merge more parts).
+Nothing here imports ROS.
 """
 from __future__ import annotations
 
@@ -26,22 +38,29 @@ SCALES = (35, 50, 80, 120, 160, 250, 400)
 TOLERANCE = 0.002  # mIoU on the piles by which another scale must beat the settings' own,
 SIGNIFICANCE = 2.0  # and by this many standard errors of its gain, pile by pile
 CHUNK = 50  # piles segmented at a time
+EDGE_STEP = 0.1  # model-input units (2.5 mm at the default max_height): a height edge
+MISMATCH = (2.5, 0.03)  # the frames' off-edge share at least this times the piles', and above
+# it by this much: the template is not the frames' part. Measured at EDGE_STEP 0.1: Z-brackets
+# 0.092 against 0.015, U-clips 0.072 against 0.018; T-pieces (the T kept) 0.019 against 0.013
+VOTE_COST = 0.02  # mIoU on the piles the vote over centre votes may cost at the scale chosen
 
 
-def choose(seg, piles: dict, scales=SCALES, tolerance: float = TOLERANCE) -> dict:
+def choose(seg, piles: dict, scales=SCALES, tolerance: float = TOLERANCE,
+           frames: dict | None = None) -> dict:
     """A `segment.Segmenter` (its tau and shipped settings) and labelled piles {x, fg,
     labels} -> {"scale": the chosen scale, "default": the settings' own, "frames": how many
     piles, "rows": [{"scale", "miou", "gain" over the settings' own, "gain_se" its standard
-    error}, ...] by scale}. With the vote off in the settings (scale 0) nothing is scored and
-    the scale stays 0; on a single pile the settings' own scale is kept."""
+    error}, ...] by scale, "setting": the setting it is for}. With the vote off in the
+    settings (scale 0) nothing is scored and the scale stays 0; on a single pile the
+    settings' own scale is kept. With centre votes on: `over_centres` (the user's `frames`,
+    {x, fg}, no label)."""
     cfg = seg.inference
     default = cfg.superpixel_scale
     if cfg.centre_votes == "on":
-        return {"scale": default, "default": default, "frames": 0, "rows": [],
-                "note": "no vote over centre votes"}
+        return over_centres(seg, piles, frames, scales)
     if default == 0:
         return {"scale": 0, "default": 0, "frames": 0, "rows": [],
-                "note": "the vote is off in these settings"}
+                "note": "the vote is off in these settings", "setting": "superpixel_scale"}
     if len(piles["x"]) == 0:
         raise ValueError("no labelled piles to choose the vote's scale on")
     if any(int(s) < 1 for s in scales):
@@ -69,11 +88,108 @@ def choose(seg, piles: dict, scales=SCALES, tolerance: float = TOLERANCE) -> dic
               and r["gain"] > max(tolerance, SIGNIFICANCE * r["gain_se"])]
     scale = max(better, key=lambda r: r["miou"])["scale"] if better else default
     return {"scale": scale, "default": default, "frames": len(piles["x"]), "rows": rows,
-            "tolerance": tolerance}
+            "tolerance": tolerance, "setting": "superpixel_scale"}
+
+
+def _labels(seg, x, fg, cfg) -> list:
+    """The model's labels of frames `x`, `fg` before the vote (`Segmenter.model_labels`), a
+    chunk at a time -> [(out, x tensor)] for `vote_and_split`."""
+    import torch
+
+    outs = []
+    for i in range(0, len(x), CHUNK):
+        xt = torch.as_tensor(x[i:i + CHUNK], dtype=torch.float32, device=seg.device)
+        with torch.no_grad():
+            outs.append((seg.model_labels(xt, fg[i:i + CHUNK], settings=cfg), xt))
+    return outs
+
+
+def _voted(seg, outs: list, cfg, scale: int) -> np.ndarray:
+    """`_labels`' outputs voted at `scale` over centre votes (and split) -> (N, H, W)."""
+    import torch
+
+    with torch.no_grad():
+        return np.concatenate([seg.vote_and_split(o, xt, replace(
+            cfg, centre_superpixel_scale=scale))["labels"].cpu().numpy() for o, xt in outs])
+
+
+def off_edge(x, fg, labels, step: float = EDGE_STEP) -> float:
+    """The share of the label boundaries inside the foreground (neighbouring foreground
+    pixels of two instances, (N, H, W) `labels`) that lie more than a pixel from a height
+    edge (neighbouring foreground pixels whose heights, (N, 1, H, W) model inputs `x`, differ
+    by more than `step`): 0 where every boundary follows the heights. NaN without boundaries."""
+    from scipy import ndimage
+
+    h, fg, labels = np.asarray(x)[:, 0], np.asarray(fg, bool), np.asarray(labels)
+    edge, cut = np.zeros_like(fg), np.zeros_like(fg)
+    for axis in (1, 2):
+        a = [slice(None)] * 3
+        b = list(a)
+        a[axis], b[axis] = slice(1, None), slice(None, -1)
+        a, b = tuple(a), tuple(b)
+        both = fg[a] & fg[b]
+        for mask, pair in ((edge, both & (np.abs(h[a] - h[b]) > step)),
+                           (cut, both & (labels[a] != labels[b]))):
+            mask[a] |= pair
+            mask[b] |= pair
+    near = ndimage.binary_dilation(edge, structure=np.ones((1, 3, 3), bool))
+    return float((cut & ~near).sum() / cut.sum()) if cut.any() else float("nan")
+
+
+def over_centres(seg, piles: dict, frames: dict | None, scales=SCALES) -> dict:
+    """Over centre votes: the labels' `off_edge` share on the piles and on the user's `frames`
+    ({x, fg}, no label); where the frames' is MISMATCH above the piles' (the template is not
+    the frames' part), the largest of `scales` whose vote costs the piles at most VOTE_COST
+    mIoU -> the choice, as `choose`'s, for `centre_superpixel_scale` ("mismatch": whether the
+    shares say so; "off_edge": both). Without frames nothing is measured and the vote stays
+    off."""
+    cfg = seg.inference
+    none = {"scale": 0, "default": 0, "frames": 0, "rows": [],
+            "setting": "centre_superpixel_scale"}
+    if frames is None or not len(frames["x"]):
+        return {**none, "note": "no vote over centre votes"}
+    if not len(piles["x"]):
+        raise ValueError("no labelled piles to choose the vote's scale on")
+    if any(int(s) < 1 for s in scales):
+        raise ValueError(f"vote scales {tuple(scales)} invalid; valid: integers >= 1")
+    cfg = replace(cfg, centre_superpixel_scale=0)
+    outs_p = _labels(seg, piles["x"], piles["fg"], cfg)
+    plain = _voted(seg, outs_p, cfg, 0)
+    outs_f = _labels(seg, frames["x"], frames["fg"], cfg)
+    shares = {"piles": off_edge(piles["x"], piles["fg"], plain),
+              "frames": off_edge(frames["x"], frames["fg"], _voted(seg, outs_f, cfg, 0))}
+    ratio, gap = MISMATCH
+    mismatch = bool(shares["frames"] >= ratio * shares["piles"]
+                    and shares["frames"] - shares["piles"] >= gap)
+    record = {**none, "frames": len(piles["x"]), "user_frames": len(frames["x"]),
+              "off_edge": {k: round(v, 4) for k, v in shares.items()}, "mismatch": mismatch,
+              "vote_cost": VOTE_COST}
+    if not mismatch:
+        return {**record, "note": "the labels follow the frames' edges as the piles': no vote "
+                                  "over centre votes"}
+    base = miou_batch(plain, piles["labels"])
+    for s in sorted({int(v) for v in scales}):
+        gain = miou_batch(_voted(seg, outs_p, cfg, s), piles["labels"]) - base
+        record["rows"].append({"scale": s, "miou": float(mean_miou(base + gain)),
+                               "gain": float(np.nanmean(gain))})
+    fits = [r["scale"] for r in record["rows"] if r["gain"] >= -VOTE_COST]
+    record["scale"] = max(fits) if fits else 0
+    return record
 
 
 def describe(choice: dict) -> str:
     """One line for a model card: the scores and the scale kept."""
+    if choice.get("setting") == "centre_superpixel_scale" and "off_edge" in choice:
+        off = choice["off_edge"]
+        share = (f"the labels' boundaries off the heights' edges: {off['frames']:.3f} of them "
+                 f"on {choice['user_frames']} of the user's frames, "
+                 f"{off['piles']:.3f} on {choice['frames']} labelled piles")
+        if not choice["mismatch"]:
+            return f"off over centre votes ({share})"
+        return (f"over centre votes at scale {choice['scale']}: {share}, so the template is not "
+                f"the frames' part; the largest scale costing the piles at most "
+                f"{choice['vote_cost']} mIoU (" + ", ".join(
+                    f"{r['scale']}: {r['gain']:+.3f}" for r in choice["rows"]) + ")")
     if not choice.get("rows"):
         return f"not chosen ({choice.get('note', 'no piles')})"
     scores = ", ".join(f"{r['scale']}: {r['miou']:.3f}" for r in choice["rows"])

@@ -219,20 +219,34 @@ def scale_search(measure, cfg: FamilyConfig, more=lambda: True) -> dict[float, f
     beyond it (the ends' own ratio), at most `cfg.extend` steps: a template learned too small
     or too large is still sized, and a grid that brackets the best costs nothing more.
     -> {scale: distance}."""
-    w1 = {v: measure(v) for v in cfg.scales}
-    for _ in range(cfg.extend):
+    def beyond(w1: dict[float, float], best: float) -> float | None:
+        if len(w1) < 2:
+            return None
+        ordered = sorted(w1)
+        return best * (ordered[-1] / ordered[-2] if best == ordered[-1]
+                       else ordered[0] / ordered[1])
+    return step_out(measure, {v: measure(v) for v in cfg.scales}, cfg.extend, beyond,
+                    MAX_SCALE, more)
+
+
+def step_out(measure, d: dict[float, float], steps: int, beyond, limit: float,
+             more=lambda: True) -> dict[float, float]:
+    """`d` ({value: distance}, measured) with, while its best value lies at an end of what was
+    measured (or is all there is), `measure` at `beyond(d, best)` past that end, at most
+    `steps` times, while `more()` and the value is in (0, `limit`] (`beyond` None: no step)
+    -> all of them, sorted. The rule of the scale and the bars' width searches."""
+    d = dict(d)
+    for _ in range(steps):
         if not more():
             break
-        lo, hi = min(w1), max(w1)
-        best = min(w1, key=w1.get)
-        if len(w1) < 2 or best not in (lo, hi):
+        best = min(d, key=d.get)
+        if len(d) > 1 and best not in (min(d), max(d)):
             break
-        ratio = (hi / sorted(w1)[-2]) if best == hi else (lo / sorted(w1)[1])
-        v = round(best * ratio, 4)
-        if not 0 < v <= MAX_SCALE:
+        v = beyond(d, best)
+        if v is None or not 0 < round(v, 4) <= limit:
             break
-        w1[v] = measure(v)
-    return dict(sorted(w1.items()))
+        d[round(v, 4)] = measure(round(v, 4))
+    return dict(sorted(d.items()))
 
 
 def refine_scale(measure, w1: dict[float, float], rounds: int, more=lambda: True
@@ -355,19 +369,9 @@ def width_search(measure, steps: int, more=lambda: True) -> dict[float, float]:
     times it, then, while the best is at an end of what was measured (and `more()`), one
     more step beyond it: at most `steps` widths measured, each in (0, MAX_BAR_WIDTH]
     -> {width: distance}."""
-    d = {1.0: 2.0}
-    for _ in range(steps):
-        if not more():
-            break
-        lo, hi = min(d), max(d)
-        best = min(d, key=d.get)
-        if len(d) > 1 and best not in (lo, hi):
-            break
-        v = round(best * WIDTH_STEP if best == lo else best / WIDTH_STEP, 4)
-        if not 0 < v <= MAX_BAR_WIDTH:
-            break
-        d[v] = measure(v)
-    return dict(sorted(d.items()))
+    return step_out(measure, {1.0: 2.0}, steps,
+                    lambda d, best: best * WIDTH_STEP if best == min(d) else best / WIDTH_STEP,
+                    MAX_BAR_WIDTH, more)
 
 
 def _widths(row: dict, rod_file: Path, x, val, data, meta, view: dict, out: Path, ref: tuple,
