@@ -190,7 +190,8 @@ def _template_options(g) -> None:
     g.add_argument("--family-iterations", type=int, default=FamilyConfig.fit_iterations,
                    help="--families: iterations of the fitted candidates, box and bars "
                         f"({FamilyConfig.fit_iterations})")
-    g.add_argument("--family-edges", action="store_true",
+    g.add_argument("--family-edges", action=argparse.BooleanOptionalAction,
+                   default=FamilyConfig.edges,
                    help="--families: the piles' edge distances' W1 joins each candidate's "
                         "score (recorded either way)")
     g.add_argument("--family-refine", type=int, default=FamilyConfig.refine,

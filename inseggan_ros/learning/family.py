@@ -22,8 +22,8 @@ sized) rod, and keeps the one whose simulated piles look most like the user's fr
   ring   one hexagonal disc with a hole (nuts, washers);
   taper  one disc tapering to 0.4 of its radius (cones, stoppers).
 
-Each candidate is measured by three label-free measures, and scored by the first and the
-last (the second too with `edges`):
+Each candidate is measured by three label-free measures, and scored by all three (the first
+and the last without `edges`):
   * piles: `piles` scenes of the candidate, at each of `scales` (the whole template scaled;
     beyond the grid's end, step by step, where the best lies there: `scale_search`; with
     `refine`, then the step about each one's best halved: `refine_scale`),
@@ -38,9 +38,13 @@ last (the second too with `edges`):
     pixels' distances to the nearest background or depth edge to the frames'
     (`pilematch.edge_distances`): how wide the parts' surfaces are. The heights alone do not
     tell a thin U from two fitted slabs of the same area (U-clips: 0.030 and 0.033); these
-    do (0.029 and 0.81), in the order the models then segment (mIoU 0.68 and 0.47); but among
-    the candidates they kept a U of bars too wide, whose model segmented U-clips worse than
-    the L's (0.465 against 0.516), so they are recorded and not scored by default;
+    do (0.029 and 0.81), in the order the models then segment (mIoU 0.68 and 0.47). Among
+    the candidates of bars as thick as the rod they kept a U of bars too wide, whose model
+    segmented U-clips worse than the L's (0.465 against 0.516); since the bars are as thick
+    as the frames' flat parts and their width is searched, they keep the U at 0.49 of the
+    width (edges' W1 0.026, the L's 0.357), whose model segments U-clips at 0.631 against the
+    L's 0.546, and change no choice on T-pieces or Z-brackets (docs/experiments.md,
+    2026-12-07, day);
   * held-out reconstruction: the pyramid L1 of the candidate's renders (as made, unscaled),
     placed by its encoder, against frames no fit saw (`shapefit._recon` at level 1).
 The kept family minimises the sum of those scored, each divided by its best value over the
@@ -107,9 +111,9 @@ class FamilyConfig:
     leaders: int = 3  # the candidates of the best scores after the first round
     widths: int = 2  # steps of the bars' width search (`width_search`; 0: the width
     # `shapefit.rod_bars` gives)
-    edges: bool = False  # the edge distances' W1 joins the score (each row records it either
-    # way); off: on U-clips it kept three bars as a U, whose piles' model segmented worse than
-    # the L's kept without it (mIoU 0.465 against 0.516, docs/experiments.md, 2026-12-07)
+    edges: bool = True  # the edge distances' W1 joins the score (each row records it either
+    # way): on U-clips it keeps the U (mIoU 0.631) over the L (0.546; docs/experiments.md,
+    # 2026-12-07, day)
     fit_iterations: int = 500  # of the fitted families (box, bars)
     frames: int = 600  # of the user's frames, at most, for the fits and the heights
     val_frames: int = 80  # held out of them for the reconstruction score
