@@ -47,13 +47,14 @@ def problems(card: dict) -> list[str]:
     vote = card.get("vote_scale") or {}
     if vote.get("mismatch"):
         off = vote["off_edge"]
+        voted = (f"their labels are voted within depth superpixels (scale {vote['scale']}) to "
+                 "follow the frames' edges" if vote["scale"] else
+                 "no superpixel vote cost the piles little enough to run")
         out.append(f"the labels' boundaries leave the frames' height edges {off['frames']:.3f} "
                    f"of the time, against {off['piles']:.3f} on the model's own piles: the kept "
                    "template is not the part's shape (see template_family.png), and the centre "
-                   "votes cut across parts; their labels are voted within depth superpixels "
-                   f"(scale {vote['scale']}) to follow the frames' edges. Check the segmentations "
-                   "(qualitative.png) before use, or try `inseggan loop --families` with one "
-                   "family named")
+                   f"votes cut across parts; {voted}. Check the segmentations (qualitative.png) "
+                   "before use, or try `inseggan loop --families` with one family named")
     fg = _best_foreground_iou(card)
     if fg is not None and fg < MIN_FOREGROUND_IOU:
         out.append(f"foreground IoU {fg:.3f} < {MIN_FOREGROUND_IOU} at every tau: the model's "

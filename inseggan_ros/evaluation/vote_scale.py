@@ -158,12 +158,12 @@ def over_centres(seg, piles: dict, frames: dict | None, scales=SCALES) -> dict:
     outs_f = _labels(seg, frames["x"], frames["fg"], cfg)
     shares = {"piles": off_edge(piles["x"], piles["fg"], plain),
               "frames": off_edge(frames["x"], frames["fg"], _voted(seg, outs_f, cfg, 0))}
-    ratio, gap = MISMATCH
+    ratio, gap = MISMATCH  # a share without boundaries (NaN) says nothing: no mismatch
     mismatch = bool(shares["frames"] >= ratio * shares["piles"]
                     and shares["frames"] - shares["piles"] >= gap)
     record = {**none, "frames": len(piles["x"]), "user_frames": len(frames["x"]),
-              "off_edge": {k: round(v, 4) for k, v in shares.items()}, "mismatch": mismatch,
-              "vote_cost": VOTE_COST}
+              "off_edge": {k: None if np.isnan(v) else round(v, 4) for k, v in shares.items()},
+              "mismatch": mismatch, "vote_cost": VOTE_COST}
     if not mismatch:
         return {**record, "note": "the labels follow the frames' edges as the piles': no vote "
                                   "over centre votes"}
@@ -180,10 +180,10 @@ def over_centres(seg, piles: dict, frames: dict | None, scales=SCALES) -> dict:
 def describe(choice: dict) -> str:
     """One line for a model card: the scores and the scale kept."""
     if choice.get("setting") == "centre_superpixel_scale" and "off_edge" in choice:
-        off = choice["off_edge"]
-        share = (f"the labels' boundaries off the heights' edges: {off['frames']:.3f} of them "
+        off = {k: "none" if v is None else f"{v:.3f}" for k, v in choice["off_edge"].items()}
+        share = (f"the labels' boundaries off the heights' edges: {off['frames']} of them "
                  f"on {choice['user_frames']} of the user's frames, "
-                 f"{off['piles']:.3f} on {choice['frames']} labelled piles")
+                 f"{off['piles']} on {choice['frames']} labelled piles")
         if not choice["mismatch"]:
             return f"off over centre votes ({share})"
         return (f"over centre votes at scale {choice['scale']}: {share}, so the template is not "
