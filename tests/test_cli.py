@@ -110,9 +110,9 @@ def test_a_printed_recipe_read_back_resolves_the_same_and_flags_override_it(tmp)
     assert (first["scenes"], first["pile_lengths"], first["vote_scales"],
             first["size_by_thickness"], first["lr"]) == (16, [0.1, 0.17], [], "off", 0.0005)
     assert first["val_scenes"] == 200 and first["data"] is None  # every option, defaults too
-    assert first["family_edges"] is True  # the edges' W1 scored by default; turned off by name
+    assert first["family_edges"] is False  # the edges' W1 recorded, scored when asked
     assert _print_recipe("--bag", tmp / "bag", "--instances", "4", "--out", tmp / "run",
-                         "--no-family-edges")["family_edges"] is False
+                         "--family-edges")["family_edges"] is True
     recipe = tmp / "recipe.yaml"
     recipe.write_text(yaml.safe_dump(first))
     assert _config(_print_recipe("--recipe", recipe)) == _config(first)

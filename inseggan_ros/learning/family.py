@@ -22,8 +22,8 @@ sized) rod, and keeps the one whose simulated piles look most like the user's fr
   ring   one hexagonal disc with a hole (nuts, washers);
   taper  one disc tapering to 0.4 of its radius (cones, stoppers).
 
-Each candidate is measured by three label-free measures, and scored by all three (the first
-and the last without `edges`):
+Each candidate is measured by three label-free measures, and scored by the first and the
+last (the second too with `edges`):
   * piles: `piles` scenes of the candidate, at each of `scales` (the whole template scaled;
     beyond the grid's end, step by step, where the best lies there: `scale_search`; with
     `refine`, then the step about each one's best halved: `refine_scale`),
@@ -43,8 +43,9 @@ and the last without `edges`):
     segmented U-clips worse than the L's (0.465 against 0.516); since the bars are as thick
     as the frames' flat parts and their width is searched, they keep the U at 0.49 of the
     width (edges' W1 0.026, the L's 0.357), whose model segments U-clips at 0.631 against the
-    L's 0.546, and change no choice on T-pieces or Z-brackets (docs/experiments.md,
-    2026-12-07, day);
+    L's 0.546, and change no choice on T-pieces, Z-brackets or hex nuts; but on a small
+    recording of blocks they made a taper's piles score about as well as the fitted box's
+    (docs/experiments.md, 2026-12-07, day), so they are scored only when asked;
   * held-out reconstruction: the pyramid L1 of the candidate's renders (as made, unscaled),
     placed by its encoder, against frames no fit saw (`shapefit._recon` at level 1).
 The kept family minimises the sum of those scored, each divided by its best value over the
@@ -111,9 +112,10 @@ class FamilyConfig:
     leaders: int = 3  # the candidates of the best scores after the first round
     widths: int = 2  # steps of the bars' width search (`width_search`; 0: the width
     # `shapefit.rod_bars` gives)
-    edges: bool = True  # the edge distances' W1 joins the score (each row records it either
-    # way): on U-clips it keeps the U (mIoU 0.631) over the L (0.546; docs/experiments.md,
-    # 2026-12-07, day)
+    edges: bool = False  # the edge distances' W1 joins the score (each row records it either
+    # way): on U-clips it keeps the U (mIoU 0.631) over the L (0.546 without the vote, 0.619
+    # with it), and on a small recording of blocks it let a taper score about as the box
+    # (docs/experiments.md, 2026-12-07, day): off until measured on a box-like part
     fit_iterations: int = 500  # of the fitted families (box, bars)
     frames: int = 600  # of the user's frames, at most, for the fits and the heights
     val_frames: int = 80  # held out of them for the reconstruction score
