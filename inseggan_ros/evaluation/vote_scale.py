@@ -14,8 +14,9 @@ to move: on a tilted bolt loop's piles scale 35 beat 50 by 0.0022, and scored 0.
 on the recording).
 
 Over centre votes the vote is off: where the model's part is the frames' part, their labels
-already follow its edges, and the vote only merges touching parts (it lowered every shipped
-tilted model's mIoU on fresh recordings, by 0.000-0.020 at scale 50 and 0.019-0.097 at 160).
+already follow its edges, and the vote only merges touching parts (on fresh recordings it
+left or lowered every shipped tilted model's mIoU at scale 50, by up to 0.020, and lowered
+every one at 160, by 0.019-0.097).
 Where the kept template is not the part's shape (Z-brackets piled as a U, U-clips as an L),
 the net's instances cut across the parts, and the vote gains 0.05-0.08 (docs/experiments.md,
 2026-12-07). The piles cannot show which case holds (they are of the template), but the
