@@ -62,23 +62,11 @@ def choose(seg, piles: dict, scales=SCALES, tolerance: float = TOLERANCE,
     if default == 0:
         return {"scale": 0, "default": 0, "frames": 0, "rows": [],
                 "note": "the vote is off in these settings", "setting": "superpixel_scale"}
-    if len(piles["x"]) == 0:
-        raise ValueError("no labelled piles to choose the vote's scale on")
-    if any(int(s) < 1 for s in scales):
-        raise ValueError(f"vote scales {tuple(scales)} invalid; valid: integers >= 1")
-    import torch
-
+    _check(piles, scales)
     candidates = sorted({int(s) for s in scales} | {default})
-    labels = {s: [] for s in candidates}
-    for i in range(0, len(piles["x"]), CHUNK):
-        x = torch.as_tensor(piles["x"][i:i + CHUNK], dtype=torch.float32, device=seg.device)
-        with torch.no_grad():
-            out = seg.model_labels(x, piles["fg"][i:i + CHUNK])  # once: only the vote differs
-            for s in candidates:
-                voted = seg.vote_and_split(out, x, replace(cfg, superpixel_scale=s))
-                labels[s].append(voted["labels"].cpu().numpy())
-    scores = {s: np.asarray(miou_batch(np.concatenate(labels[s]), piles["labels"]))
-              for s in candidates}
+    outs = _labels(seg, piles["x"], piles["fg"], cfg)  # once: only the vote differs
+    scores = {s: np.asarray(miou_batch(_voted(seg, outs, replace(cfg, superpixel_scale=s)),
+                                       piles["labels"])) for s in candidates}
     rows = []
     for s in candidates:  # the gain over the settings' own scale, pile by pile
         gain = scores[s] - scores[default]
@@ -90,6 +78,13 @@ def choose(seg, piles: dict, scales=SCALES, tolerance: float = TOLERANCE,
     scale = max(better, key=lambda r: r["miou"])["scale"] if better else default
     return {"scale": scale, "default": default, "frames": len(piles["x"]), "rows": rows,
             "tolerance": tolerance, "setting": "superpixel_scale"}
+
+
+def _check(piles: dict, scales) -> None:
+    if len(piles["x"]) == 0:
+        raise ValueError("no labelled piles to choose the vote's scale on")
+    if any(int(s) < 1 for s in scales):
+        raise ValueError(f"vote scales {tuple(scales)} invalid; valid: integers >= 1")
 
 
 def _labels(seg, x, fg, cfg) -> list:
@@ -105,13 +100,13 @@ def _labels(seg, x, fg, cfg) -> list:
     return outs
 
 
-def _voted(seg, outs: list, cfg, scale: int) -> np.ndarray:
-    """`_labels`' outputs voted at `scale` over centre votes (and split) -> (N, H, W)."""
+def _voted(seg, outs: list, cfg) -> np.ndarray:
+    """`_labels`' outputs voted (and split) as the settings `cfg` say -> (N, H, W) labels."""
     import torch
 
     with torch.no_grad():
-        return np.concatenate([seg.vote_and_split(o, xt, replace(
-            cfg, centre_superpixel_scale=scale))["labels"].cpu().numpy() for o, xt in outs])
+        return np.concatenate([seg.vote_and_split(o, xt, cfg)["labels"].cpu().numpy()
+                               for o, xt in outs])
 
 
 def off_edge(x, fg, labels, step: float = EDGE_STEP) -> float:
@@ -149,16 +144,13 @@ def over_centres(seg, piles: dict, frames: dict | None, scales=SCALES) -> dict:
             "setting": "centre_superpixel_scale"}
     if frames is None or not len(frames["x"]):
         return {**none, "note": "no vote over centre votes"}
-    if not len(piles["x"]):
-        raise ValueError("no labelled piles to choose the vote's scale on")
-    if any(int(s) < 1 for s in scales):
-        raise ValueError(f"vote scales {tuple(scales)} invalid; valid: integers >= 1")
+    _check(piles, scales)
     cfg = replace(cfg, centre_superpixel_scale=0)
     outs_p = _labels(seg, piles["x"], piles["fg"], cfg)
-    plain = _voted(seg, outs_p, cfg, 0)
+    plain = _voted(seg, outs_p, cfg)
     outs_f = _labels(seg, frames["x"], frames["fg"], cfg)
     shares = {"piles": off_edge(piles["x"], piles["fg"], plain),
-              "frames": off_edge(frames["x"], frames["fg"], _voted(seg, outs_f, cfg, 0))}
+              "frames": off_edge(frames["x"], frames["fg"], _voted(seg, outs_f, cfg))}
     ratio, gap = MISMATCH  # a share without boundaries (NaN) says nothing: no mismatch
     mismatch = bool(shares["frames"] >= ratio * shares["piles"]
                     and shares["frames"] - shares["piles"] >= gap)
@@ -170,7 +162,8 @@ def over_centres(seg, piles: dict, frames: dict | None, scales=SCALES) -> dict:
                                   "over centre votes"}
     base = miou_batch(plain, piles["labels"])
     for s in sorted({int(v) for v in scales}):
-        gain = miou_batch(_voted(seg, outs_p, cfg, s), piles["labels"]) - base
+        gain = miou_batch(_voted(seg, outs_p, replace(cfg, centre_superpixel_scale=s)),
+                          piles["labels"]) - base
         record["rows"].append({"scale": s, "miou": float(mean_miou(base + gain)),
                                "gain": float(np.nanmean(gain))})
     fits = [r["scale"] for r in record["rows"] if r["gain"] >= -VOTE_COST]
