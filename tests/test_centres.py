@@ -13,7 +13,7 @@ from inseggan_ros.core import checkpoint
 from inseggan_ros.core import settings
 from inseggan_ros.learning.centres import (
     OFFSET_UNIT, CentreConfig, CentreNet, centre_labels, decode, fit, match_to_renders, miou_of,
-    targets)
+    piles_part, targets)
 from inseggan_ros.data.datasets import load_sim_split
 from inseggan_ros.learning.loop import LoopConfig
 from inseggan_ros.core.paths import resolve_model
@@ -274,3 +274,19 @@ def test_self_labels_from_a_recording_label_all_its_frames(tmp):
                 "--out", tmp / "none", "--iterations", "10", "--quiet")
     assert p.returncode != 0 and str(tmp / "empty") in p.stderr, p.stderr
     assert "meta.json" in p.stderr and "recording" in p.stderr, p.stderr
+
+
+@pytest.mark.parametrize("model, words", [
+    ("models/wooden_block_tilted", "fitted by reconstruction as 1 convex piece of 4 walls (best "
+                                   "of 1500 iterations, at 1000)"),
+    ("models/cylinder_tilted", "the learned rod of"),
+    ("cylinder", "the simulator's cylinder (the true part)")])
+def test_the_card_names_what_the_piles_are_of_for_every_shipped_kind_of_record(tmp, model, words):
+    """The piles' part as the card says it, read from their meta.json: a shipped model's
+    template (the block's shape-fit record is of an earlier format) or a library part."""
+    from inseggan_ros.sim.dataset import FORMAT
+
+    (tmp / "sim").mkdir()
+    (tmp / "sim" / "meta.json").write_text(json.dumps(
+        {"format": FORMAT, "scene": {"object": model}}))
+    assert words in piles_part(tmp / "sim")

@@ -4,6 +4,7 @@ import json
 
 import numpy as np
 import pytest
+from conftest import run_cli
 
 from inseggan_ros.sim.dataset import DatasetSpec, generate, iter_scenes, load_meta, scene_seed
 from inseggan_ros.sim.scene import BinSimulator, SceneConfig
@@ -78,3 +79,19 @@ def test_a_data_set_of_mixed_counts(tmp):
             assert labels.max() <= n and (n > 0 or not labels.any())
     assert 0 in [spec.scene.count(scene_seed(5, s, i)) for s in ("train", "test")
                  for i in range(spec.counts[s])], "the seeds chosen hold an empty bin"
+
+
+def test_simulate_draws_a_count_per_scene_from_the_command_line(tmp):
+    """`simulate --min-instances M`: the scenes of one data set hold M..--instances parts,
+    each scene's own; a range that cannot be is refused with what is valid."""
+    run_cli("simulate", "--quiet", "--object", "hex_nut", "--instances", "3", "--min-instances",
+            "0", "--count", "12", "--split", "12,0,0", "--seed", "5", "--workers", "1", "--out",
+            tmp / "ds", check=True, timeout=300)
+    meta = load_meta(tmp / "ds")
+    assert meta["scene"]["min_instances"] == 0
+    counts = {int(k) for k in meta["instance_counts"]["train"]}
+    assert len(counts) > 1 and counts <= {0, 1, 2, 3}, counts
+    p = run_cli("simulate", "--quiet", "--instances", "3", "--min-instances", "4", "--count",
+                "4", "--out", tmp / "bad")
+    assert p.returncode == 2 and "min_instances must be in 0..instances (3)" in p.stderr, p.stderr
+    assert not (tmp / "bad").exists()

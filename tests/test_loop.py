@@ -175,7 +175,8 @@ def test_one_command_from_a_bag_learns_the_shape_then_ships_a_model(tmp):
     args = ["loop", "--bag", bag, "--instances", "4", "--noise", "realsense", "--labels-topic",
             "/camera/depth/instance_labels", "--out", out, "--train-iterations", "10",
             "--eval-every", "5", "--scenes", "16", "--val-scenes", "4", "--iterations", "10",
-            "--head-iterations", "5", "--centre-iterations", "0", "--quiet"]
+            "--head-iterations", "5", "--centre-iterations", "0", "--min-instances", "0",
+            "--quiet"]
     p = run_cli(*args, check=True, timeout=900)
     assert "loop done" in p.stdout and "shape" in p.stdout
     summary = json.loads((out / "summary.json").read_text())
@@ -213,8 +214,13 @@ def test_one_command_from_a_bag_learns_the_shape_then_ships_a_model(tmp):
     assert card["vote_scale"]["frames"] == 4  # chosen on the last piles' validation split
     # the piles: the bag's camera (its tilt found), cut as the bag's frames are (the bin found
     # in every frame), so that their bin lands where the bag's does
-    sim_camera = json.loads((out / "sim" / "meta.json").read_text())["scene"]["camera"]
+    sim_meta = json.loads((out / "sim" / "meta.json").read_text())
+    sim_camera = sim_meta["scene"]["camera"]
     assert sim_camera["width"] == 848 and abs(sim_camera["tilt"] - 3) < 0.5, sim_camera
+    # --min-instances 0: each pile holds 0..4 parts, its own count (a bin a robot empties)
+    counts = {int(k) for split in ("train", "val") for k in sim_meta["instance_counts"][split]}
+    assert sim_meta["scene"]["min_instances"] == 0 and len(counts) > 1 and counts <= set(
+        range(5)), sim_meta["instance_counts"]
     prep = PreprocessConfig.from_dict(learned["preprocess_config"])
     assert prep.roi is None
     piles = load_sim_split(out / "sim", "train", prep, limit=8, as_given=True)

@@ -145,18 +145,27 @@ def model_settings(seg, args):
     return apply(cfg, {k: (int(v) if v.lstrip("-").isdigit() else v) for k, v in pairs.items()})
 
 
+def model_dir(name: str) -> Path | None:
+    """A shipped model's name (a folder of models/) or a model folder -> its folder (None:
+    neither holds a model.pt)."""
+    for path in (REPO / "models" / name, Path(name)):
+        if (path / "model.pt").is_file():
+            return path
+    return None
+
+
 def run_model(name: str, args) -> list[dict]:
     import torch
 
     from inseggan_ros.runtime.segment import Segmenter
 
     torch.set_num_threads(1)
-    model_dir = REPO / "models" / name
-    seg = Segmenter.from_checkpoint(model_dir / "model.pt", device="cpu")
+    folder = model_dir(name)
+    seg = Segmenter.from_checkpoint(folder / "model.pt", device="cpu")
     settings = model_settings(seg, args)
     n = seg.model_cfg.n_instances
     counts = sorted({parse_count(c, n) for c in args.counts})
-    source = scene_source(model_dir)
+    source = scene_source(model_dir(args.bins_of) if args.bins_of else folder)
     rows = []
     for count in counts:
         seeds = [frame_seed(args.seed, count, i) for i in range(args.frames)]
@@ -196,7 +205,12 @@ def main(argv=None) -> int:
                                  description=__doc__.split("\n")[0])
     ap.add_argument("--models", nargs="+",
                     default=["cylinder", "hex_nut", "wooden_block", "cylinder_tilted"],
-                    help="shipped models (folders of models/)")
+                    help="shipped models (folders of models/) or model folders (a loop's "
+                         "OUT/model)")
+    ap.add_argument("--bins-of", metavar="MODEL",
+                    help="simulate every model's bins with this model's part, camera and noise "
+                         "(its card's), so that models of one part segment the same frames "
+                         "(default: each model's own card)")
     ap.add_argument("--counts", nargs="+", default=["0", "1", "N-1", "N"],
                     help="parts in the bin; N is the model's n (default: 0 1 N-1 N)")
     ap.add_argument("--frames", type=int, default=20, help="frames per model and count")
@@ -211,9 +225,12 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.frames < 1:
         ap.error(f"--frames {args.frames}: valid: 1 or more")
-    for name in args.models:
-        if not (REPO / "models" / name / "model.pt").is_file():
-            ap.error(f"--models {name}: no models/{name}/model.pt; valid: "
+    given = [("--models", m) for m in args.models] + [("--bins-of", args.bins_of)] * bool(
+        args.bins_of)
+    for flag, name in given:
+        if model_dir(name) is None:
+            ap.error(f"{flag} {name}: no models/{name}/model.pt and no folder with a model.pt; "
+                     "valid: a model folder, or one of "
                      + ", ".join(sorted(p.parent.name for p in REPO.glob("models/*/model.pt"))))
     try:
         [parse_count(c, 5) for c in args.counts]

@@ -70,6 +70,7 @@ def scene_config(args):
     pose = {k: v for k, v in (("tilt", args.tilt), ("roll", args.roll),
                               ("bin_offset", args.bin_offset)) if v is not None}
     return SceneConfig(object=args.object, instances=args.instances,
+                       min_instances=getattr(args, "min_instances", None),
                        camera=replace(camera, **pose) if pose else camera,
                        noise=get_noise(args.noise))
 
@@ -95,6 +96,10 @@ def add_scene_args(p: argparse.ArgumentParser) -> None:
                    help=f"a part of the library ({', '.join(OBJECTS)}; default cylinder), or a "
                         "model folder or .pt checkpoint: the shape it learned")
     p.add_argument("--instances", type=int, default=5, help="objects per bin (default 5)")
+    p.add_argument("--min-instances", type=int, metavar="M",
+                   help="each scene draws its own count, uniformly in M..--instances, from its "
+                        "seed (a bin a robot empties; 0: empty bins among them); default: "
+                        "every scene holds --instances")
     p.add_argument("--camera", default="default", choices=list(PRESETS),
                    help="camera preset: default = 224x224, realsense_d435 = 848x480, "
                         "realsense_d435_tilted = the same tilted 3 degrees, bin off-centre")

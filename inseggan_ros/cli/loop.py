@@ -96,6 +96,10 @@ def _stage_options(g) -> None:
     """The piles, the encoder and the stages after it."""
     g.add_argument("--scenes", type=int, default=3000, help="simulated training scenes (3000)")
     g.add_argument("--val-scenes", type=int, default=200, help="and validation scenes (200)")
+    g.add_argument("--min-instances", type=int, metavar="M",
+                   help="each simulated scene holds M..--instances parts, drawn per scene (0: "
+                        "empty bins among them), so that the centre votes find as many parts "
+                        "as there are; default: every scene holds --instances")
     g.add_argument("--iterations", type=int, default=0,
                    help="encoder iterations (0, the default: no encoder stage, the model's own "
                         "encoder, with --centre-iterations or --head-iterations)")
@@ -272,7 +276,7 @@ def loop_config(opts: dict):
 
     from inseggan_ros.learning.loop import LoopConfig
 
-    names = ("scenes", "val_scenes", "iterations", "lr", "seed", "workers", "name",
+    names = ("scenes", "val_scenes", "min_instances", "iterations", "lr", "seed", "workers", "name",
              "user_weight", "head_iterations", "centre_iterations", "centre_teacher",
              "self_frames", "self_iterations", "self_settings", "export_settings",
              "size_by_thickness", "size_rounds", "size_keep_length", "vote_scales",

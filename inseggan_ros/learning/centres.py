@@ -312,9 +312,11 @@ def piles_part(sim) -> str | None:
                 f"from `{obj}`")
     pieces = cfg.get("pieces")
     what = (f"{pieces} convex piece{'s' if pieces != 1 else ''} of {cfg.get('walls')} walls")
-    if fit:  # `shape-fit` from a rod (`loop --convex-pieces`)
+    if fit:  # `shape-fit` from a rod (`loop --convex-pieces`); the shipped block's record,
+        # of an earlier format, names the kept iteration `kept`
+        at = fit.get("iteration", fit.get("kept"))
         return (f"the learned rod fitted by reconstruction as {what} (best of "
-                f"{fit['config']['iterations']} iterations, at {fit['iteration']}), from `{obj}`")
+                f"{fit['config']['iterations']} iterations, at {at}), from `{obj}`")
     return f"the learned template of `{obj}`, {what}"
 
 

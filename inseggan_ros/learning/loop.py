@@ -80,7 +80,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 from typing import TYPE_CHECKING
@@ -116,6 +116,9 @@ SHAPE_ITERATIONS = 600
 class LoopConfig:
     scenes: int = 3000  # labelled scenes of the learned part to train the encoder on
     val_scenes: int = 200  # and to choose its best checkpoint with
+    min_instances: int | None = None  # each pile draws its count in min_instances..n (n: the
+    # parts in the user's bin; 0: empty bins among them), as a robot that empties the bin sees
+    # it, so that the centre votes learn to find the parts there are (None: every pile holds n)
     iterations: int = 0  # encoder iterations (0, the shipped models' recipe: no encoder stage,
     # the model's own encoder; then the piles teach what follows: centre votes or a label head)
     lr: float = 3e-4  # their learning rate (cosine schedule down to 0)
@@ -179,6 +182,9 @@ class LoopConfig:
         if self.self_frames < 0:
             raise ValueError(f"self_frames {self.self_frames!r} invalid; valid: >= 0 (0 = no "
                              "self-fitting stage)")
+        if self.min_instances is not None and self.min_instances < 0:
+            raise ValueError(f"min_instances {self.min_instances!r} invalid; valid: >= 0 (each "
+                             "pile's count drawn in min_instances..n), or none (every pile n)")
         Budget(self.minutes)  # raises with what is valid
         for key in ("scenes", "val_scenes", "workers", "user_frames", "self_iterations"):
             if getattr(self, key) < 1:
@@ -260,7 +266,6 @@ def learn_shape(data, out, train_cfg, progress: bool = True, val_frames: int = 1
     """Stage 0: learn the part's shape from the user's unlabelled training frames with
     `train_cfg` (a `train.TrainConfig`; its instance count is the data set's) -> out/best.pt.
     Skipped when out/summary.json says the run finished; resumed from out/last.pt after a kill."""
-    from dataclasses import replace
 
     from inseggan_ros.data.datasets import load_sim_training
     from inseggan_ros.learning.train import train
@@ -447,8 +452,10 @@ def _simulate_and_fit(file: Path, data, meta: dict | None, view: dict, sim: Path
 
     t0 = time.monotonic()
     if not (sim / "meta.json").is_file():
-        spec = DatasetSpec(pile_scene(data, meta, part or file),
-                           {"train": cfg.scenes, "val": cfg.val_scenes, "test": 0},
+        scene = pile_scene(data, meta, part or file)
+        if cfg.min_instances is not None:
+            scene = replace(scene, min_instances=min(cfg.min_instances, scene.instances))
+        spec = DatasetSpec(scene, {"train": cfg.scenes, "val": cfg.val_scenes, "test": 0},
                            seed=cfg.seed)
         generate(spec, sim, workers=cfg.workers, progress=progress)
     seconds["simulate" + tag] = round(time.monotonic() - t0, 1)
@@ -609,7 +616,6 @@ def match_stage(file: Path, data, out: Path, cfg: LoopConfig, progress: bool = T
     as `shape-fit --start discs --iterations 0 --match-piles` writes it (`shapefit.fit_shape`,
     its reconstruction of held-out frames measured, not fitted) -> out/best.pt. A killed
     search resumes from the variants it measured; each step is skipped when done."""
-    from dataclasses import replace
 
     from inseggan_ros.core import checkpoint
     from inseggan_ros.learning.pilematch import search
@@ -789,7 +795,6 @@ def _budget(cfg: LoopConfig, learns: bool) -> Budget:
 def _shape_budget(train_cfg, budget: Budget):
     """The shape stage's config with its share of the budget as its wall-clock limit (where
     that is tighter than its own)."""
-    from dataclasses import replace
 
     limit = budget.share("shape") / 60
     if math.isfinite(limit) and not 0 < train_cfg.max_minutes <= limit:
