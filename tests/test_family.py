@@ -283,3 +283,25 @@ def test_pieces_joined_in_a_chain_need_each_centre_in_the_next_piece():
         G.init_boxes(legs, [(-0.4, -0.4), (0.0, 0.4), (0.4, -0.4)])
     with pytest.raises(ValueError, match="one \\(x, y\\) or 3 of them"):
         G.init_boxes(legs, [(0.4, 0.4)] * 2)
+
+
+def test_a_scale_at_which_the_bin_cannot_hold_n_parts_is_no_candidate_s_end(tmp):
+    """A candidate whose template, at a scale of the grid, is too large for the user's bin to
+    hold n of it (the simulator's PileError) gets no distance there, not a failed loop: it is
+    kept at a scale that piles, or, where none does, skipped with the simulator's reason."""
+    state = checkpoint.load(ROD)
+    data = BagFrames(BAG, 4)
+    x = data.frames(PreprocessConfig.from_dict(state["preprocess_config"]))[0]["x"]
+    cfg = family.FamilyConfig(families=("rod", "taper"), piles=6, scales=(1.0, 4.0), extend=0,
+                              widths=0, workers=2)
+    choice = family.choose(ROD, x, data, None, pile_view(data, state), tmp / "a", cfg,
+                           progress=False)
+    for row in choice["rows"]:
+        assert row["scale"] == 1.0 and row["pile_w1_by_scale"]["4"] is None, row
+        assert row["edge_w1_by_scale"]["4"] is None and row["pile_w1"] > 0
+    too_large = family.FamilyConfig(families=("rod",), piles=6, scales=(4.0,), extend=0,
+                                    workers=2)
+    with pytest.raises(ValueError, match=r"no template family could be made .* rod: not "
+                                         r"piled: at no scale .* at x4: .*fell out of the"):
+        family.choose(ROD, x, data, None, pile_view(data, state), tmp / "b", too_large,
+                      progress=False)

@@ -74,6 +74,7 @@ from inseggan_ros.learning.pilematch import edge_distances, heights, pile_frames
 from inseggan_ros.learning.shapefit import (BARS, MAX_BAR_WIDTH, ShapeFitConfig, _recon,
                                             fit_shape, hold_out)
 from inseggan_ros.runtime.model import RING_WALLS, build_models
+from inseggan_ros.sim.scene import PileError
 
 # each family: how its template is made from the rod (`shapefit.ShapeFitConfig`; None: the
 # rod as it is). The fitted ones' iterations are `FamilyConfig.fit_iterations`.
@@ -97,6 +98,7 @@ FLAT = tuple(f for f, c in FAMILIES.items() if c is not None and c.start in BARS
 FITTED = tuple(f for f, c in FAMILIES.items() if c is not None and c.iterations)
 MAX_SCALE = 4.0  # of a candidate's template, at most
 TIME_SKIP = "not made: the time budget"  # a candidate's row where its share ran out
+UNPILED = "not piled: at no scale tried did the bin hold the user's n parts of it"
 
 
 @dataclass(frozen=True)
@@ -340,8 +342,12 @@ def choose(rod_file, frames: np.ndarray, data, meta, view: dict, out,
             continue
         edges: dict[float, float] = {}
         more = (lambda own=own: time.monotonic() < own)
-        w1 = scale_search(_measure(file, family, out / family, data, meta, view, ref, cfg,
-                                   edges), cfg, more)
+        measure = _measure(file, family, out / family, data, meta, view, ref, cfg, edges)
+        w1 = scale_search(measure, cfg, more)
+        if not any(map(math.isfinite, w1.values())):
+            rows[family] = {"family": family, "skipped": UNPILED + "; at x" + "; at x".join(
+                f"{v:g}: {why}" for v, why in measure.unpiled.items())}
+            continue
         row = {"family": family, "model": str(file), "rod": str(rod_file), "config": config,
                "recon_l1": held_out_l1(file, val), **_at_best(w1, edges, file, out / family)}
         if family in FLAT and cfg.widths:
@@ -362,8 +368,14 @@ def _measure(file: Path, family: str, folder: Path, data, meta, view: dict, ref:
     visible area)."""
     def measure(v: float) -> float:
         part = scaled_model(file, v, folder / f"scale{v:g}.pt", family in FLAT)
-        w1, edges[v] = pile_distance(part, data, meta, view, folder / "piles", ref, cfg)
+        try:
+            w1, edges[v] = pile_distance(part, data, meta, view, folder / "piles", ref, cfg)
+        except PileError as e:  # n parts this large do not stay in the user's bin: the
+            measure.unpiled[v] = str(e)  # scale is not the part's (no distance)
+            edges[v] = math.inf
+            return math.inf
         return w1
+    measure.unpiled = {}  # {scale: the simulator's reason} where no pile could be made
     return measure
 
 
@@ -422,8 +434,13 @@ def _at_best(w1: dict[float, float], edges: dict[float, float], file: Path,
     scale = min(w1, key=w1.get)
     return {"scale": scale, "part": str(folder / f"scale{scale:g}.pt" if scale != 1.0 else file),
             "pile_w1": w1[scale], "edge_w1": edges[scale],
-            "pile_w1_by_scale": {f"{v:g}": round(d, 5) for v, d in w1.items()},
-            "edge_w1_by_scale": {f"{v:g}": round(d, 5) for v, d in edges.items()}}
+            "pile_w1_by_scale": {f"{v:g}": _finite(d) for v, d in w1.items()},
+            "edge_w1_by_scale": {f"{v:g}": _finite(d) for v, d in edges.items()}}
+
+
+def _finite(d: float) -> float | None:
+    """A distance as a row records it: None where the scale could not be piled."""
+    return round(d, 5) if math.isfinite(d) else None
 
 
 def _log(log: Path, row: dict) -> None:
@@ -450,8 +467,8 @@ def _refine_leaders(rows: dict, data, meta, view: dict, out: Path, ref: tuple,
             if row.get("refined", 0) >= rounds or time.monotonic() >= deadline:
                 continue
             t0 = time.monotonic()
-            w1 = {float(v): d for v, d in row["pile_w1_by_scale"].items()}
-            edges = {float(v): d for v, d in row["edge_w1_by_scale"].items()}
+            w1, edges = ({float(v): math.inf if d is None else d for v, d in row[k].items()}
+                         for k in ("pile_w1_by_scale", "edge_w1_by_scale"))
             folder = Path(row.get("folder", out / row["family"]))
             measure = _measure(Path(row["model"]), row["family"], folder, data, meta, view, ref,
                                cfg, edges)
