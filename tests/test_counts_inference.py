@@ -173,9 +173,17 @@ def test_the_counts_benchmark_prints_its_table_and_writes_json(tmp, capsys, one_
     assert [(r["parts"], r["frames"]) for r in rows] == [(0, 1), (5, 1)]
     assert rows[0]["miou"] is None and rows[0]["counts"] == {"0": 1}
     assert 0 < rows[1]["miou"] <= 1
-    for bad in (["--counts", "two"], ["--models", "teapot"], ["--frames", "0"]):
+    # a model folder beside the names, its bins those of another model's card (--bins-of):
+    # the shipped cylinder by its folder on the cylinder's own bins gives the same figures
+    assert main(["--models", str(REPO / "models" / "cylinder"), "--bins-of", "cylinder",
+                 "--counts", "N", "--frames", "1", "--seed", str(SEED), "--json", str(out)]) == 0
+    again = json.loads(out.read_text())["rows"]
+    assert again[0]["miou"] == rows[1]["miou"] and again[0]["counts"] == rows[1]["counts"]
+    for bad in (["--counts", "two"], ["--models", "teapot"], ["--frames", "0"],
+                ["--models", "cylinder", "--bins-of", str(tmp)]):
         with pytest.raises(SystemExit) as e:
             main(bad)
         assert e.value.code == 2
     err = capsys.readouterr().err
     assert "valid: an integer, N or N-k" in err and "valid: bolt" in err
+    assert f"--bins-of {tmp}: no models/" in err and "or a model folder" in err

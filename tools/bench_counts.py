@@ -230,8 +230,9 @@ def main(argv=None) -> int:
     for flag, name in given:
         if model_dir(name) is None:
             ap.error(f"{flag} {name}: no models/{name}/model.pt and no folder with a model.pt; "
-                     "valid: a model folder, or one of "
-                     + ", ".join(sorted(p.parent.name for p in REPO.glob("models/*/model.pt"))))
+                     "valid: " + ", ".join(sorted(p.parent.name
+                                                  for p in REPO.glob("models/*/model.pt")))
+                     + " (models/), or a model folder")
     try:
         [parse_count(c, 5) for c in args.counts]
     except ValueError as e:

@@ -266,7 +266,6 @@ def learn_shape(data, out, train_cfg, progress: bool = True, val_frames: int = 1
     """Stage 0: learn the part's shape from the user's unlabelled training frames with
     `train_cfg` (a `train.TrainConfig`; its instance count is the data set's) -> out/best.pt.
     Skipped when out/summary.json says the run finished; resumed from out/last.pt after a kill."""
-
     from inseggan_ros.data.datasets import load_sim_training
     from inseggan_ros.learning.train import train
 
@@ -616,7 +615,6 @@ def match_stage(file: Path, data, out: Path, cfg: LoopConfig, progress: bool = T
     as `shape-fit --start discs --iterations 0 --match-piles` writes it (`shapefit.fit_shape`,
     its reconstruction of held-out frames measured, not fitted) -> out/best.pt. A killed
     search resumes from the variants it measured; each step is skipped when done."""
-
     from inseggan_ros.core import checkpoint
     from inseggan_ros.learning.pilematch import search
     from inseggan_ros.runtime.preprocess import PreprocessConfig
@@ -795,7 +793,6 @@ def _budget(cfg: LoopConfig, learns: bool) -> Budget:
 def _shape_budget(train_cfg, budget: Budget):
     """The shape stage's config with its share of the budget as its wall-clock limit (where
     that is tighter than its own)."""
-
     limit = budget.share("shape") / 60
     if math.isfinite(limit) and not 0 < train_cfg.max_minutes <= limit:
         return replace(train_cfg, max_minutes=round(max(limit, 0.5), 2))
