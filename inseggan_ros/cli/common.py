@@ -70,7 +70,7 @@ def scene_config(args):
     pose = {k: v for k, v in (("tilt", args.tilt), ("roll", args.roll),
                               ("bin_offset", args.bin_offset)) if v is not None}
     return SceneConfig(object=args.object, instances=args.instances,
-                       min_instances=getattr(args, "min_instances", None),
+                       min_instances=args.min_instances,
                        camera=replace(camera, **pose) if pose else camera,
                        noise=get_noise(args.noise))
 
