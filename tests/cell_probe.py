@@ -15,6 +15,7 @@ STEPS.json is a list of steps, run in order:
                                    compressedDepth (PNG) on <depth topic>/compressedDepth
     ["labels", COUNT, TIMEOUT]     wait until COUNT label images have arrived in this step
     ["idle", SECONDS]              keep spinning (and publishing)
+    ["diagnostics", NAME]          the last status under NAME received so far (as below)
 Writes OUT.json: "steps", per step {step, t0_ns, t1_ns (wall clock), result, labels: the stamps
 of the label images received during it}; "labels": every label image as [stamp_ns,
 instances]; "picks": [stamp_ns, frame_id, poses]; "confidence": [label, values];
@@ -149,6 +150,8 @@ class Probe:
         if kind == "idle":
             self.spin_until(lambda: False, step[1])
             return True
+        if kind == "diagnostics":
+            return dict(self.diagnostics.get(step[1], {}))
         raise ValueError(f"unknown step {step}")
 
 

@@ -106,6 +106,9 @@ def test_bin_check_against_a_card(tmp_path):
     assert check.verdict().message == "no frame yet"
     like = {"recon_l1": ref["recon_l1"], "recon_l1_foreground": 0.4, "coverage": ref["coverage"],
             "spill": ref["spill"] + 0.05, "visible": np.array([5])}
+    check.add({**like, "coverage": 0.0})
+    v = check.verdict()  # one frame: too few to judge on
+    assert v.level == "ok" and v.message == "collecting frames (1 of the 3 it judges on)", v
     for _ in range(3):
         check.add(like)
     assert check.verdict().level == "ok"

@@ -597,8 +597,11 @@ class SegmenterNode(LifecycleNode):
         bin_status = arr.status[-1]
         level = "warn" if bin_status.level != DiagnosticStatus.OK else "ok"
         if level != self._bin_level and self.bin_check is not None:
-            log = self.get_logger().warning if level == "warn" else self.get_logger().info
-            log(f"bin check: {bin_status.message}")
+            # one call site per severity: rclpy refuses a call site whose severity changes
+            if level == "warn":
+                self.get_logger().warning(f"bin check: {bin_status.message}")
+            else:
+                self.get_logger().info(f"bin check: {bin_status.message}")
         self._bin_level = level
         arr.header.stamp = self.get_clock().now().to_msg()
         self.pub_diag.publish(arr)

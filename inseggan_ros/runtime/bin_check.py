@@ -140,10 +140,13 @@ class BinCheck:
     """The last `window` frames' measures and what they say against the card's (`reference`,
     from `card_reference`; None: the values are shown, nothing is judged)."""
 
+    MIN_FRAMES = 5  # the medians of fewer frames (a node's first, its bin not yet found) judge not
+
     def __init__(self, reference: dict | None, source: str, n: int, window: int = 15,
                  margins: Margins = Margins()):
         self.reference, self.source, self.n, self.margins = reference, source, n, margins
         self.frames = deque(maxlen=window)  # measures of recent frames with foreground
+        self.min_frames = min(window, self.MIN_FRAMES)
         self.last = None  # the last frame's measures (an empty bin's too)
 
     def add(self, measures: dict) -> None:
@@ -180,6 +183,9 @@ class BinCheck:
                                    "no instances", values)
         if self.reference is None:
             return Verdict("ok", f"not checked ({self.source})", values)
+        if len(self.frames) < self.min_frames:
+            return Verdict("ok", f"collecting frames ({len(self.frames)} of the "
+                                 f"{self.min_frames} it judges on)", values)
         off = self.departures(med)
         if off:
             return Verdict("warn", f"the bin does not look like the model's part ({'; '.join(off)}"
