@@ -123,7 +123,7 @@ def test_bars_scaled_across_keep_their_height(tmp):
     new, G, E = convex_from_rod(state, ShapeFitConfig(pieces=3, walls=4, start="u"), ROD)
     u = checkpoint.save(tmp / "u.pt", {**new, "generator": G.state_dict(),
                                        "encoder": E.state_dict()})
-    assert set(family.FLAT) == {"tee", "ell", "u"}
+    assert set(family.FLAT) == {"bar", "tee", "ell", "u"}
     wide = family.scaled_model(u, 1.5, tmp / "wide.pt", flat=True)
     np.testing.assert_allclose(_extent(wide), _extent(u) * [1.5, 1.5, 1.0], rtol=2e-3,
                                atol=2e-3)
@@ -203,6 +203,29 @@ def test_bars_start_joined_as_a_t_an_l_or_a_u_from_the_rod_s_box(kind):
         ShapeFitConfig(pieces=2, start="u")
 
 
+def test_a_lone_bar_is_as_long_as_the_rod_and_half_as_wide_or_as_asked():
+    """The bar family: one bar 2a long (the rod's length) and b wide (half the rod's
+    footprint, a 2:1 block from a round blob), centred on the origin; twice as wide, square at
+    most as long; the model keeps the rod (not fitted) and its outline is what is scaled."""
+    state = checkpoint.load(ROD)
+    a, b, _ = rod_box(build_models(state, ROD)[1])
+    _, G, _ = convex_from_rod(state, ShapeFitConfig(pieces=1, walls=4, start="bar"))
+    w = b / 2
+    assert _inside(G, -0.95 * a, 0.0) and _inside(G, 0.95 * a, 0.0)
+    assert _inside(G, 0.0, -0.9 * w) and _inside(G, 0.0, 0.9 * w)
+    assert not _inside(G, 1.1 * a, 0.0) and not _inside(G, 0.0, 1.2 * w)
+    assert not _inside(G, 0.0, -1.2 * w)
+    _, G, _ = convex_from_rod(state, ShapeFitConfig(pieces=1, walls=4, start="bar",
+                                                    bar_width=2.0))
+    half = max(a, b)  # as wide as the rod: square where the rod is as long as it is wide
+    assert _inside(G, 0.0, 0.9 * b) and not _inside(G, 0.0, 1.1 * b)
+    assert _inside(G, 0.95 * half, 0.0) and not _inside(G, 1.1 * half, 0.0)
+    assert FAMILIES["bar"].start == "bar" and "bar" in family.FLAT
+    assert "bar" not in family.FITTED
+    with pytest.raises(ValueError, match="start bar is 1 bar; valid: pieces 1 and walls 4"):
+        ShapeFitConfig(pieces=2, walls=4, start="bar")
+
+
 def test_flat_parts_height_is_the_lowest_mode_of_the_frames_heights():
     """Parts lying flat at one height (0.3 model units), others leaning higher (spread to 1.5):
     the bars are as thick as the flat ones, not the lower quartile's; where the heights only
@@ -244,7 +267,7 @@ def test_bars_as_wide_as_asked():
     for bad in (0.0, 2.5):
         with pytest.raises(ValueError, match=r"bar_width .* invalid; valid: in \(0, 2\]"):
             ShapeFitConfig(pieces=3, walls=4, start="u", bar_width=bad)
-    with pytest.raises(ValueError, match="sizes bars; valid: with a start of tee, ell, u"):
+    with pytest.raises(ValueError, match="sizes bars; valid: with a start of bar, tee, ell, u"):
         ShapeFitConfig(start="box", bar_width=0.5)
 
 

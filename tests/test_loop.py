@@ -432,14 +432,14 @@ def test_the_default_loop_chooses_the_template_family_then_piles_it_once(tmp):
     fam = card["template_family"]
     assert fam == summary["template_family"]
     assert [r["family"] for r in fam["candidates"]] == \
-        ["rod", "box", "bars", "tee", "ell", "u", "discs", "ring", "taper"]
+        ["rod", "box", "bars", "bar", "tee", "ell", "u", "discs", "ring", "taper"]
     scored = [r for r in fam["candidates"] if "skipped" not in r]
     assert {"rod", "box", "bars"} <= {r["family"] for r in scored}
     for r in scored:
         assert r["pile_w1"] > 0 and r["recon_l1"] > 0 and r["seconds"] > 0
         # the grid's four scales, and steps past an end where the share holds them; a bars
         # candidate made thinner or wider: the three scales about its area's, and such steps
-        assert ("width" in r) == (r["family"] in ("tee", "ell", "u"))
+        assert ("width" in r) == (r["family"] in ("bar", "tee", "ell", "u"))
         n = 3 if r.get("width", 1) != 1 else 4
         assert n <= len(r["pile_w1_by_scale"]) <= n + FamilyConfig.extend
         assert "refined" not in r  # no refinement by default

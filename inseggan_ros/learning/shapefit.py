@@ -53,7 +53,7 @@ from inseggan_ros.runtime.model import (
 from inseggan_ros.runtime.model import build_models
 
 
-BARS = {"tee": 2, "ell": 2, "u": 3}  # the starts of bars joined (`rod_bars`): their pieces
+BARS = {"bar": 1, "tee": 2, "ell": 2, "u": 3}  # the starts of bars (`rod_bars`): their pieces
 STARTS = ("box", "discs", *BARS)
 MAX_BAR_WIDTH = 2.0  # `ShapeFitConfig.bar_width`, at most
 
@@ -101,7 +101,8 @@ class ShapeFitConfig:
         if self.start not in STARTS:
             raise ValueError(f"start {self.start!r} invalid; valid: {', '.join(STARTS)}")
         if self.start in BARS and (self.pieces, self.walls) != (BARS[self.start], 4):
-            raise ValueError(f"start {self.start} is {BARS[self.start]} bars; valid: pieces "
+            raise ValueError(f"start {self.start} is {BARS[self.start]} "
+                             f"bar{'s' if BARS[self.start] > 1 else ''}; valid: pieces "
                              f"{BARS[self.start]} and walls 4 (not {self.pieces}, {self.walls})")
         if not 0 <= self.hole < 1:
             raise ValueError(f"hole {self.hole!r} invalid; valid: 0 (no hole) or a fraction "
@@ -187,10 +188,15 @@ def flat_top(x, height_gain: float) -> float | None:
 
 def rod_bars(G: SphereGenerator, kind: str, x=None, width: float = 1.0) -> tuple[list, list]:
     """Bars from the rod's box (`rod_box`: half-length a, radius b, half-thickness c): one 2a
-    long across the top, and joined to it, each 2a long, one bar down from its middle (a T,
-    "tee"), from its end (an L, "ell"), or from both its ends (a U, "u": three pieces), every
-    bar b wide (together about the rod's footprint; `width` times that) and 2c high, the whole
-    outline centred on the template's origin -> `ConvexGenerator.init_boxes`' (boxes, joints).
+    long across the top, alone ("bar": a block, a plate, a flat bar; at least as long as it is
+    wide) or joined to one bar 2a long down from its middle (a T, "tee"), from its end (an L,
+    "ell"), or to two from both its ends (a U, "u": three pieces), every bar b wide (together
+    about the rod's footprint; `width` times that) and 2c high, the whole outline centred on the
+    template's origin -> `ConvexGenerator.init_boxes`' (boxes, joints).
+    Why the lone bar: the box fitted by reconstruction from the rod's box keeps the rod's
+    outline, and a block's learned rod is a round blob, so the box came out a square slab
+    (53.8 x 51.5 x 27.5 mm against the block's 50 x 25 x 15: volumetric IoU 0.50); the bar is
+    half as wide as long and as thick as the frames' flat parts, and its width is searched.
     With frames `x`, c is half their flat parts' height (`flat_top`) where they show one: the
     bars' thickness is the frames', and the family's scale and width searches size their
     outline only (`family.FLAT`, `family.width_search`)."""
@@ -199,9 +205,12 @@ def rod_bars(G: SphereGenerator, kind: str, x=None, width: float = 1.0) -> tuple
     if flat is not None:
         c = max(flat / 2, 2 * CONVEX_MIN_EXTENT)
     w = max(width * b / 2, 2 * CONVEX_MIN_EXTENT)
-    a = max(a, 2 * w)
     if kind not in BARS:
         raise ValueError(f"bars {kind!r} invalid; valid: {', '.join(BARS)}")
+    if kind == "bar":
+        a = max(a, w)
+        return [(-a, a, -w, w, 2 * c)], [(0.0, 0.0)]
+    a = max(a, 2 * w)
     shift = a - w  # the outline spans y -(2a - w)..w: its middle to 0
     top = (-a, a, -w + shift, w + shift, 2 * c)
 
