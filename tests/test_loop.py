@@ -13,7 +13,7 @@ from conftest import REPO, run_cli
 
 from inseggan_ros.core import checkpoint
 from inseggan_ros.evaluation import vote_scale
-from inseggan_ros.learning.family import FAMILIES, FamilyConfig
+from inseggan_ros.learning.family import FAMILIES, FLAT, FamilyConfig
 from inseggan_ros.learning import losses
 from inseggan_ros.data.datasets import load_bag, load_sim_split
 from inseggan_ros.learning.loop import AUTO_SIZE_ROUNDS, VOTE_SCALES
@@ -441,8 +441,10 @@ def test_the_default_loop_chooses_the_template_family_then_piles_it_once(tmp):
         # candidate made thinner or wider: the three scales about its area's, and such steps
         assert ("width" in r) == (r["family"] in ("bar", "tee", "ell", "u"))
         n = 3 if r.get("width", 1) != 1 else 4
-        assert n <= len(r["pile_w1_by_scale"]) <= n + FamilyConfig.extend
-        assert "refined" not in r  # no refinement by default
+        # the bars' best scale then refined (two scales a round, where the time holds them)
+        flat = 2 * FamilyConfig.flat_refine if r["family"] in FLAT else 0
+        assert n <= len(r["pile_w1_by_scale"]) <= n + FamilyConfig.extend + flat
+        assert r.get("refined") == (FamilyConfig.flat_refine if r["family"] in FLAT else None)
         assert r["score"] >= 2 - 1e-6  # each measure over its best: 1 + 1 at least
     kept = min(scored, key=lambda r: r["score"])
     assert fam["kept"] == kept["family"] and f"template family: {kept['family']}" in p.stdout

@@ -203,8 +203,12 @@ def _template_options(g) -> None:
                         "best scale (one round for every candidate, the rest for the "
                         f"{FamilyConfig.leaders} leaders; {FamilyConfig.refine}: none)")
     g.add_argument("--family-widths", type=int, default=FamilyConfig.widths,
-                   help="--families: steps of the bars' width search (T, L and U; "
-                        f"{FamilyConfig.widths}; 0: none)")
+                   help="--families: steps of the bars' width search (the lone bar, T, L and "
+                        f"U; {FamilyConfig.widths}; 0: none)")
+    g.add_argument("--family-flat-refine", type=int, default=FamilyConfig.flat_refine,
+                   help="--families: rounds of halving the scale step about each bars "
+                        "candidate's best scale once its width is chosen "
+                        f"({FamilyConfig.flat_refine}; 0: none)")
 
 
 def _families(text: str) -> tuple[str, ...]:
@@ -323,6 +327,7 @@ def _with_family(cfg, opts: dict):
                                             fit_iterations=opts["family_iterations"],
                                             refine=opts["family_refine"],
                                             widths=opts["family_widths"],
+                                            flat_refine=opts["family_flat_refine"],
                                             edges=opts["family_edges"],
                                             workers=opts["workers"], seed=opts["seed"]))
 

@@ -29,8 +29,9 @@ sized) rod, and keeps the one whose simulated piles look most like the user's fr
 Each candidate is measured by three label-free measures, and scored by the first and the
 last (the second too with `edges`):
   * piles: `piles` scenes of the candidate, at each of `scales` (the whole template scaled;
-    beyond the grid's end, step by step, where the best lies there: `scale_search`; with
-    `refine`, then the step about each one's best halved: `refine_scale`),
+    beyond the grid's end, step by step, where the best lies there: `scale_search`; the
+    bars' once their width is chosen, and with `refine` every candidate's, then the step about
+    each one's best halved: `refine_scale`),
     simulated in the user's bin, through the user's camera, cut as the frames are; the
     1-Wasserstein distance of their heights (every pixel of the crop, the floor included: the
     parts' heights and visible area at once) to the user's frames' (`pilematch.heights`, the
@@ -117,6 +118,10 @@ class FamilyConfig:
     # two fitted boxes' piles nearest the frames (W1 0.029 at x0.92), and their model
     # segmented worse than the L's kept without (mIoU 0.474 against 0.516)
     leaders: int = 3  # the candidates of the best scores after the first round
+    flat_refine: int = 1  # rounds of `refine_scale` about each flat family's best scale once
+    # its width is chosen (`FLAT`): as thick as the frames' flat parts, their piles' heights
+    # W1 follows their visible area, in a minimum narrower than the grid's step (x0.85 in
+    # scale, x0.72 in area): on blocks the lone bar measured 0.128 at x0.71 and 0.020 at x0.77
     widths: int = 2  # steps of the bars' width search (`width_search`; 0: the width
     # `shapefit.rod_bars` gives)
     edges: bool = False  # the edge distances' W1 joins the score (each row records it either
@@ -134,7 +139,7 @@ class FamilyConfig:
         if not self.families or unknown or len(set(self.families)) != len(self.families):
             raise ValueError(f"families {self.families!r} invalid; valid: one or more of "
                              f"{', '.join(FAMILIES)}, each once")
-        for key in ("extend", "refine", "leaders", "widths"):
+        for key in ("extend", "refine", "leaders", "widths", "flat_refine"):
             if getattr(self, key) < 0:
                 raise ValueError(f"{key} {getattr(self, key)!r} invalid; valid: >= 0")
         if not self.scales or any(not 0 < v <= MAX_SCALE for v in self.scales) \
@@ -358,6 +363,8 @@ def choose(rod_file, frames: np.ndarray, data, meta, view: dict, out,
         if family in FLAT and cfg.widths:
             row = _widths(row, Path(rod_file), x, val, data, meta, view, out, ref, cfg, more)
         row["seconds"] = round(time.monotonic() - t0, 1)
+        if family in FLAT and cfg.flat_refine:
+            _refine_row(row, cfg.flat_refine, data, meta, view, out, ref, cfg, more)
         _log(log, row)
         rows[family] = row
         spent.append(row["seconds"])
@@ -471,18 +478,24 @@ def _refine_leaders(rows: dict, data, meta, view: dict, out: Path, ref: tuple,
             row = scored[i]
             if row.get("refined", 0) >= rounds or time.monotonic() >= deadline:
                 continue
-            t0 = time.monotonic()
-            w1, edges = ({float(v): math.inf if d is None else d for v, d in row[k].items()}
-                         for k in ("pile_w1_by_scale", "edge_w1_by_scale"))
-            folder = Path(row.get("folder", out / row["family"]))
-            measure = _measure(Path(row["model"]), row["family"], folder, data, meta, view, ref,
-                               cfg, edges)
-            w1 = refine_scale(measure, w1, rounds - row.get("refined", 0),
-                              lambda: time.monotonic() < deadline)
-            row.update(_at_best(w1, edges, Path(row["model"]), folder),
-                       refined=rounds,
-                       seconds=round(row["seconds"] + time.monotonic() - t0, 1))
+            _refine_row(row, rounds, data, meta, view, out, ref, cfg,
+                        lambda: time.monotonic() < deadline)
             _log(log, row)
+
+
+def _refine_row(row: dict, rounds: int, data, meta, view: dict, out: Path, ref: tuple,
+                cfg: FamilyConfig, more) -> None:
+    """A candidate's `row` (in place) with its scale refined to `rounds` rounds in all
+    (`refine_scale`, while `more()`), its best scale's fields, "refined" and "seconds" so."""
+    t0 = time.monotonic()
+    w1, edges = ({float(v): math.inf if d is None else d for v, d in row[k].items()}
+                 for k in ("pile_w1_by_scale", "edge_w1_by_scale"))
+    folder = Path(row.get("folder", out / row["family"]))
+    measure = _measure(Path(row["model"]), row["family"], folder, data, meta, view, ref, cfg,
+                       edges)
+    w1 = refine_scale(measure, w1, rounds - row.get("refined", 0), more)
+    row.update(_at_best(w1, edges, Path(row["model"]), folder), refined=rounds,
+               seconds=round(row["seconds"] + time.monotonic() - t0, 1))
 
 
 def _decide(rows: dict, rod_file, config: dict, out: Path) -> dict:
