@@ -118,10 +118,11 @@ class FamilyConfig:
     # two fitted boxes' piles nearest the frames (W1 0.029 at x0.92), and their model
     # segmented worse than the L's kept without (mIoU 0.474 against 0.516)
     leaders: int = 3  # the candidates of the best scores after the first round
-    flat_refine: int = 1  # rounds of `refine_scale` about each flat family's best scale once
-    # its width is chosen (`FLAT`): as thick as the frames' flat parts, their piles' heights
-    # W1 follows their visible area, in a minimum narrower than the grid's step (x0.85 in
-    # scale, x0.72 in area): on blocks the lone bar measured 0.128 at x0.71 and 0.020 at x0.77
+    flat_refine: int = 1  # rounds of `refine_scale` about each flat family's best scale
+    # before its width search (`FLAT`): as thick as the frames' flat parts, their piles'
+    # heights W1 follows their visible area, in a minimum narrower than the grid's step (x0.85
+    # in scale, x0.72 in area): on blocks the lone bar measured 0.114 at x0.85 and 0.035 at
+    # x0.92 (the block's area), 0.128 at x0.71 and 0.020 at x0.77 at 1.43 times the width
     widths: int = 2  # steps of the bars' width search (`width_search`; 0: the width
     # `shapefit.rod_bars` gives)
     edges: bool = False  # the edge distances' W1 joins the score (each row records it either
@@ -360,11 +361,14 @@ def choose(rod_file, frames: np.ndarray, data, meta, view: dict, out,
             continue
         row = {"family": family, "model": str(file), "rod": str(rod_file), "config": config,
                "recon_l1": held_out_l1(file, val), **_at_best(w1, edges, file, out / family)}
+        if family in FLAT and cfg.flat_refine:  # before the width search, within the stage's
+            # time rather than the candidate's share: two piles a round find the parts' area,
+            # where the grid's scales missed it (the width search's more, once the area is)
+            _refine_row(row, cfg.flat_refine, data, meta, view, out, ref, cfg,
+                        lambda: time.monotonic() < deadline)
         if family in FLAT and cfg.widths:
             row = _widths(row, Path(rod_file), x, val, data, meta, view, out, ref, cfg, more)
         row["seconds"] = round(time.monotonic() - t0, 1)
-        if family in FLAT and cfg.flat_refine:
-            _refine_row(row, cfg.flat_refine, data, meta, view, out, ref, cfg, more)
         _log(log, row)
         rows[family] = row
         spent.append(row["seconds"])
@@ -427,7 +431,8 @@ def _widths(row: dict, rod_file: Path, x, val, data, meta, view: dict, out: Path
         edges: dict[float, float] = {}
         w1 = scale_search(_measure(file, family, folder, data, meta, view, ref, cfg, edges),
                           replace(cfg, scales=grid), more)
-        rows[f] = {**row, "model": str(file), "folder": str(folder),
+        rows[f] = {**{k: v for k, v in row.items() if k != "refined"}, "model": str(file),
+                   "folder": str(folder),
                    "recon_l1": held_out_l1(file, val), **_at_best(w1, edges, file, folder)}
         return (rows[f]["pile_w1"] / max(row["pile_w1"], 1e-9)
                 + rows[f][EDGES] / max(row[EDGES], 1e-9))
@@ -495,7 +500,7 @@ def _refine_row(row: dict, rounds: int, data, meta, view: dict, out: Path, ref: 
                        edges)
     w1 = refine_scale(measure, w1, rounds - row.get("refined", 0), more)
     row.update(_at_best(w1, edges, Path(row["model"]), folder), refined=rounds,
-               seconds=round(row["seconds"] + time.monotonic() - t0, 1))
+               seconds=round(row.get("seconds", 0.0) + time.monotonic() - t0, 1))
 
 
 def _decide(rows: dict, rod_file, config: dict, out: Path) -> dict:
