@@ -207,7 +207,7 @@ def _template_options(g) -> None:
                         f"U; {FamilyConfig.widths}; 0: none)")
     g.add_argument("--family-flat-refine", type=int, default=FamilyConfig.flat_refine,
                    help="--families: rounds of halving the scale step about each bars "
-                        "candidate's best scale once its width is chosen "
+                        "candidate's best scale, before its width search "
                         f"({FamilyConfig.flat_refine}; 0: none)")
 
 

@@ -12,9 +12,9 @@ sized) rod, and keeps the one whose simulated piles look most like the user's fr
   bars   two convex pieces fitted so, started as two copies of the box: a union of convex
          pieces (a bracket, a plate with a step);
   bar    one bar as long as the rod and half as wide (`shapefit.rod_bars`), not fitted (the
-         fitted box keeps the rod's outline: a round blob's is square, a block's is 2:1), as
-         thick as the frames' flat-lying parts, scaled across only, its width searched, as the
-         tee's are (blocks, plates, flat bars);
+         fitted box keeps the rod's outline, and a block's rod is a round blob: the box came
+         out square), as thick as the frames' flat-lying parts, scaled across only, its width
+         searched, as the tee's are (blocks, plates, flat bars);
   tee    two bars joined as a T, each as long as the rod and half as wide (`shapefit.rod_bars`),
          not fitted: fitted by reconstruction, two bars (started as copies of one box, as a T
          or as an L alike) became one slab on T-pieces' frames (docs/experiments.md); as
