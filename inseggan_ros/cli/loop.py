@@ -16,7 +16,7 @@ from pathlib import Path
 from inseggan_ros.cli import common, recipes
 from inseggan_ros.evaluation.vote_scale import SCALES as VOTE_SCALES
 from inseggan_ros.learning.budget import DEFAULT_MINUTES
-from inseggan_ros.learning.family import FAMILIES, FamilyConfig
+from inseggan_ros.learning.family import DEFAULT_FAMILIES, FAMILIES, FamilyConfig
 
 SUMMARY = "a recording to a model: learn the part's shape from the unlabelled frames, finish " \
           "the model on labelled simulated piles of it, ship it with a label-free card"
@@ -181,10 +181,11 @@ def _template_options(g) -> None:
                    help="--convex-pieces: side planes of each piece (4: a box)")
     g.add_argument("--convex-iterations", type=int, default=1500,
                    help="--convex-pieces: iterations of the fit (1500)")
-    g.add_argument("--families", type=_families, default=tuple(FAMILIES),
+    g.add_argument("--families", type=_families, default=DEFAULT_FAMILIES,
                    help="the template families the loop chooses among, by how their piles "
-                        "and renders match the user's frames (comma-separated; default: all, "
-                        f"{','.join(FAMILIES)}; rod alone: no choice, the rod's own piles). "
+                        "and renders match the user's frames (comma-separated; default: "
+                        f"{','.join(DEFAULT_FAMILIES)}; also: bar, best with "
+                        "--family-flat-refine 1; rod alone: no choice, the rod's own piles). "
                         "Not with --convex-pieces, --match-piles or an encoder stage, which "
                         "name the template or come before it")
 
@@ -318,7 +319,7 @@ def _with_family(cfg, opts: dict):
     if families == ("rod",):
         return cfg
     named = cfg.convex is not None or cfg.match_piles is not None or cfg.iterations
-    if named and families != tuple(FAMILIES):
+    if named and families != DEFAULT_FAMILIES:
         raise ValueError("--families chooses the template; valid: without --convex-pieces, "
                          "--match-piles and --iterations, or --families rod")
     if named:
