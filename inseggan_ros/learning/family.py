@@ -14,7 +14,8 @@ sized) rod, and keeps the one whose simulated piles look most like the user's fr
   bar    one bar as long as the rod and half as wide (`shapefit.rod_bars`), not fitted (the
          fitted box keeps the rod's outline, and a block's rod is a round blob: the box came
          out square), as thick as the frames' flat-lying parts, scaled across only, its width
-         searched, as the tee's are (blocks, plates, flat bars);
+         searched, as the tee's are (blocks, plates, flat bars); a candidate only when
+         named (not in DEFAULT_FAMILIES);
   tee    two bars joined as a T, each as long as the rod and half as wide (`shapefit.rod_bars`),
          not fitted: fitted by reconstruction, two bars (started as copies of one box, as a T
          or as an L alike) became one slab on T-pieces' frames (docs/experiments.md); as
@@ -29,9 +30,9 @@ sized) rod, and keeps the one whose simulated piles look most like the user's fr
 Each candidate is measured by three label-free measures, and scored by the first and the
 last (the second too with `edges`):
   * piles: `piles` scenes of the candidate, at each of `scales` (the whole template scaled;
-    beyond the grid's end, step by step, where the best lies there: `scale_search`; the
-    bars' once their width is chosen, and with `refine` every candidate's, then the step about
-    each one's best halved: `refine_scale`),
+    beyond the grid's end, step by step, where the best lies there: `scale_search`; with
+    `flat_refine` the bars' before their width search, and with `refine` every candidate's,
+    then the step about each one's best halved: `refine_scale`),
     simulated in the user's bin, through the user's camera, cut as the frames are; the
     1-Wasserstein distance of their heights (every pixel of the crop, the floor included: the
     parts' heights and visible area at once) to the user's frames' (`pilematch.heights`, the
