@@ -47,6 +47,26 @@ def run_cli(*args, timeout=300, check=False) -> subprocess.CompletedProcess:
     return proc
 
 
+def refused(*args, timeout=None) -> subprocess.CompletedProcess:
+    """`inseggan ARGS` run in this process, for a command expected to refuse its input:
+    the same parser, checks and one-line errors (`cli.app.main`) as the installed command,
+    without a new interpreter's start-up (about 3 s of imports a call, most of a refusal's
+    time). The commands that must work run through `run_cli`. `timeout` is ignored."""
+    import contextlib
+    import io
+
+    from inseggan_ros.cli.app import main
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            rc = main([str(a) for a in args])
+        except SystemExit as e:  # argparse's errors
+            rc = e.code if isinstance(e.code, int) else int(e.code is not None)
+    return subprocess.CompletedProcess(["inseggan", *map(str, args)], rc, out.getvalue(),
+                                       err.getvalue())
+
+
 def _param_client(*args) -> str:
     p = subprocess.run([sys.executable, str(Path(__file__).parent / "param_client.py"),
                         *map(str, args)], capture_output=True, text=True, timeout=90)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import BAGS, installed_executable, run_cli
+from conftest import BAGS, installed_executable, refused, run_cli
 from test_bin_replay import stop
 
 from inseggan_ros.io import bags
@@ -182,13 +182,13 @@ def test_writer_leaves_nothing_behind_on_failure(tmp):
 def test_cli_errors_are_one_line_without_traceback(tmp):
     (tmp / "junk.mcap").write_bytes(b"\x89MCAP0\r\n" + os.urandom(100))
     for bag in (tmp / "nope", tmp / "junk.mcap"):
-        p = run_cli("bag-info", bag)
+        p = refused("bag-info", bag)
         assert p.returncode == 2
         lines = p.stderr.strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith(f"inseggan bag-info: error: {bag}:"), \
             p.stderr
         assert "Traceback" not in p.stderr
-    p = run_cli("bag-info", BAGS / "cylinder_sim", "--topic", "/none")
+    p = refused("bag-info", BAGS / "cylinder_sim", "--topic", "/none")
     assert p.returncode == 2 and "topics: /camera/depth/camera_info" in p.stderr
     p = run_cli("bag-info", BAGS / "cylinder_sim")
     assert p.returncode == 0 and "224x224 16UC1" in p.stdout
@@ -200,7 +200,7 @@ def test_cli_simulate_bag_is_atomic(tmp):
     frames = read_all(tmp / "cones")
     assert len(frames) == 3 and frames[0].encoding == "32FC1"
     assert "wrote" in p.stdout
-    p = run_cli("simulate-bag", "--count", "3", "--object", "teapot", "--out", tmp / "x")
+    p = refused("simulate-bag", "--count", "3", "--object", "teapot", "--out", tmp / "x")
     assert p.returncode == 2 and "'teapot' is neither a part (cylinder," in p.stderr
     assert not (tmp / "x").exists()
     # killed while writing: no bag and no partial files

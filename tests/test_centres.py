@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from conftest import run_cli
+from conftest import refused, run_cli
 from inseggan_ros.core import checkpoint
 from inseggan_ros.core import settings
 from inseggan_ros.learning.centres import (
@@ -165,10 +165,10 @@ def test_a_short_training_run_segments_held_out_piles_better_and_ships_in_the_mo
     mtime = (out / "net.pt").stat().st_mtime_ns
     run_cli(*args, check=True, timeout=600)
     assert (out / "net.pt").stat().st_mtime_ns == mtime
-    p = run_cli("centres", "--model", "cylinder", "--sim", sim, "--out", out, "--iterations",
+    p = refused("centres", "--model", "cylinder", "--sim", sim, "--out", out, "--iterations",
                 "150", "--batch", "4", "--width", "8", "--threads", "1", "--quiet")
     assert p.returncode != 0 and "made with other settings" in p.stderr, p.stderr
-    p = run_cli("centres", "--model", "cylinder", "--sim", sim, "--out", tmp / "bag_cut",
+    p = refused("centres", "--model", "cylinder", "--sim", sim, "--out", tmp / "bag_cut",
                 "--self-labels", "--as-bag", "--quiet")
     assert p.returncode != 0 and "valid: one of them" in p.stderr, p.stderr
 
@@ -222,7 +222,7 @@ def test_self_labels_teach_the_net_the_models_own_labels_of_the_users_frames(tmp
     record = centres_record(checkpoint.load(tmp / "fastest" / "model.pt"))
     card = {"centre_votes": record, "inference": {"centre_votes": "on"}}
     assert "with the settings of `fastest`" in _centres_line(card)[0]
-    p = run_cli("centres", "--model", "cylinder", "--sim", data, "--self-labels", "--held-out",
+    p = refused("centres", "--model", "cylinder", "--sim", data, "--self-labels", "--held-out",
                 "56", "--out", tmp / "few", "--iterations", "10", "--quiet")
     assert p.returncode != 0 and "training frames" in p.stderr and "held out" in p.stderr
 
@@ -270,7 +270,7 @@ def test_self_labels_from_a_recording_label_all_its_frames(tmp):
     card = {"centre_votes": record, "inference": {"centre_votes": "on"}}
     assert "with its centre votes on" in _centres_line(card)[0]
     (tmp / "empty").mkdir()
-    p = run_cli("centres", "--model", "cylinder", "--sim", tmp / "empty", "--self-labels",
+    p = refused("centres", "--model", "cylinder", "--sim", tmp / "empty", "--self-labels",
                 "--out", tmp / "none", "--iterations", "10", "--quiet")
     assert p.returncode != 0 and str(tmp / "empty") in p.stderr, p.stderr
     assert "meta.json" in p.stderr and "recording" in p.stderr, p.stderr

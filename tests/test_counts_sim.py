@@ -4,7 +4,7 @@ import json
 
 import numpy as np
 import pytest
-from conftest import run_cli
+from conftest import refused, run_cli
 
 from inseggan_ros.sim.dataset import DatasetSpec, generate, iter_scenes, load_meta, scene_seed
 from inseggan_ros.sim.scene import BinSimulator, SceneConfig
@@ -91,7 +91,7 @@ def test_simulate_draws_a_count_per_scene_from_the_command_line(tmp):
     assert meta["scene"]["min_instances"] == 0
     counts = {int(k) for k in meta["instance_counts"]["train"]}
     assert len(counts) > 1 and counts <= {0, 1, 2, 3}, counts
-    p = run_cli("simulate", "--quiet", "--instances", "3", "--min-instances", "4", "--count",
+    p = refused("simulate", "--quiet", "--instances", "3", "--min-instances", "4", "--count",
                 "4", "--out", tmp / "bad")
     assert p.returncode == 2 and "min_instances must be in 0..instances (3)" in p.stderr, p.stderr
     assert not (tmp / "bad").exists()

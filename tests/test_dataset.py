@@ -4,7 +4,7 @@ import subprocess
 import sys
 
 import numpy as np
-from conftest import REPO, run_cli
+from conftest import REPO, refused, run_cli
 
 from inseggan_ros.io import bags
 from inseggan_ros.sim.dataset import iter_scenes, load_meta, scene_seed
@@ -53,14 +53,14 @@ def test_existing_output_and_bad_arguments(tmp):
     out = tmp / "ds"
     run_cli("simulate", "--quiet", "--count", "2", "--out", out, check=True)
     before = json.loads((out / "meta.json").read_text())
-    p = run_cli("simulate", "--quiet", "--count", "2", "--out", out)
+    p = refused("simulate", "--quiet", "--count", "2", "--out", out)
     assert p.returncode == 2 and "exists already" in p.stderr and "--overwrite" in p.stderr
     assert json.loads((out / "meta.json").read_text()) == before
     for args, message in [(["--count", "0"], "count must be >= 1"),
                           (["--split", "0.8,0.2"], "need three fractions"),
                           (["--instances", "40"], "instances must be in 0..20"),
                           (["--workers", "0"], "workers must be >= 1")]:
-        p = run_cli("simulate", "--quiet", *args, "--out", tmp / "bad")
+        p = refused("simulate", "--quiet", *args, "--out", tmp / "bad")
         assert p.returncode == 2 and message in p.stderr, p.stderr
         assert "Traceback" not in p.stderr
         assert not (tmp / "bad").exists()

@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import run_cli
+from conftest import refused, run_cli
 
 from inseggan_ros.core import checkpoint
 from inseggan_ros.learning import losses
@@ -66,10 +66,10 @@ def test_distillation_brings_the_encoder_towards_its_refined_poses(tmp, cyl_data
 
 
 def test_distill_refuses_a_learned_renderer_and_a_missing_checkpoint(tmp, cyl_data, tiny_model):
-    p = run_cli("distill", "--checkpoint", tiny_model / "run" / "best.pt", "--data", cyl_data,
+    p = refused("distill", "--checkpoint", tiny_model / "run" / "best.pt", "--data", cyl_data,
                 "--out", tmp / "d", "--frames", "8", "--quiet")
     assert p.returncode == 2 and "needs a rod template" in p.stderr
-    p = run_cli("distill", "--checkpoint", tmp / "missing.pt", "--data", cyl_data,
+    p = refused("distill", "--checkpoint", tmp / "missing.pt", "--data", cyl_data,
                 "--out", tmp / "d2", "--frames", "8", "--quiet")
     assert p.returncode == 2 and "no such model file" in p.stderr
     assert not (tmp / "d2" / "pseudo.pt").exists()
@@ -105,7 +105,7 @@ def test_a_narrower_encoder_pruned_from_the_source_learns_the_refined_poses(tmp,
     assert after < 0.7 * before, f"pose error to the refined poses: {before:.4f} -> {after:.4f}"
     seg = Segmenter.from_checkpoint(out / "last.pt", device="cpu")
     assert seg.E.cfg.encoder_nf == 8 and seg.segment_batch(x[:2])["labels"].shape == (2, 64, 64)
-    p = run_cli("distill", "--checkpoint", MODEL, "--data", cyl_data, "--out", tmp / "bad",
+    p = refused("distill", "--checkpoint", MODEL, "--data", cyl_data, "--out", tmp / "bad",
                 "--frames", "8", "--encoder-nf", "12", "--quiet")
     assert p.returncode == 2 and "encoder_nf 12 invalid" in p.stderr
 
@@ -246,7 +246,7 @@ def test_the_users_own_frames_are_reconstructed_better_with_their_loss(tmp, cyl_
     assert after < 0.95 * before, f"label loss {before:.4f} -> {after:.4f}"
     run_cli(*common, "--out", tmp / "with_user", "--user-data", user, "--user-weight", "2",
             check=True, timeout=600)
-    bad = run_cli(*common, "--out", tmp / "bad", "--user-weight", "1", timeout=600)
+    bad = refused(*common, "--out", tmp / "bad", "--user-weight", "1", timeout=600)
     assert bad.returncode != 0 and "--user-data and --user-weight go together" in bad.stderr
     x = torch.from_numpy(load_sim_split(user, "train")["x"])
 

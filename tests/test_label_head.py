@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
-from conftest import run_cli, zbuffer_settings
+from conftest import refused, run_cli, zbuffer_settings
 
 from inseggan_ros.core import checkpoint
 from inseggan_ros.data.datasets import load_sim_split
@@ -109,7 +109,7 @@ def test_a_short_training_run_explains_held_out_scenes_better_and_ships_in_the_m
 
 
 def test_inseggan_head_names_a_data_set_without_scenes(tmp):
-    p = run_cli("head", "--model", "cylinder", "--sim", tmp / "none", "--out", tmp / "o")
+    p = refused("head", "--model", "cylinder", "--sim", tmp / "none", "--out", tmp / "o")
     assert p.returncode == 2 and "meta.json" in p.stderr, p.stderr
-    p = run_cli("head", "--model", tmp / "none.pt", "--sim", tmp, "--out", tmp / "o")
+    p = refused("head", "--model", tmp / "none.pt", "--sim", tmp, "--out", tmp / "o")
     assert p.returncode == 2 and "none.pt" in p.stderr, p.stderr

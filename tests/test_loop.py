@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from conftest import REPO, run_cli
+from conftest import REPO, refused, run_cli
 
 from inseggan_ros.core import checkpoint
 from inseggan_ros.evaluation import vote_scale
@@ -150,14 +150,14 @@ def test_a_tiny_loop_explains_held_out_scenes_of_its_shape_better_than_its_start
 
 
 def test_loop_refuses_a_missing_model_and_frames_of_another_camera(tmp):
-    p = run_cli("loop", "--model", tmp / "nothing.pt", "--data", tmp, "--out", tmp / "o")
+    p = refused("loop", "--model", tmp / "nothing.pt", "--data", tmp, "--out", tmp / "o")
     assert p.returncode == 2 and "no model there" in p.stderr
     run_cli("simulate", "--quiet", "--count", "2", "--split", "0,1,1", "--out", tmp / "other",
             check=True, timeout=300)  # the default 224 x 224 camera
-    p = run_cli("loop", "--model", MODEL, "--data", tmp / "other", "--out", tmp / "o")
+    p = refused("loop", "--model", MODEL, "--data", tmp / "other", "--out", tmp / "o")
     assert p.returncode == 2 and "not cut as the model's were roi" in p.stderr, p.stderr
     assert not (tmp / "o" / "sim").exists()
-    p = run_cli("loop", "--model", MODEL, "--data", tmp / "other", "--out", tmp / "o",
+    p = refused("loop", "--model", MODEL, "--data", tmp / "other", "--out", tmp / "o",
                 "--vote-scales", "50,0")
     assert p.returncode == 2 and "'50,0' is not scales like 50,160,250" in p.stderr, p.stderr
 
@@ -252,10 +252,10 @@ def test_one_command_from_a_bag_learns_the_shape_then_ships_a_model(tmp):
     stamps = {p: p.stat().st_mtime_ns for p in kept}
     run_cli(*args, check=True, timeout=600)
     assert {p: p.stat().st_mtime_ns for p in stamps} == stamps
-    p = run_cli("loop", "--model", out / "shape" / "best.pt", "--bag", bag, "--instances", "4",
+    p = refused("loop", "--model", out / "shape" / "best.pt", "--bag", bag, "--instances", "4",
                 "--out", tmp / "o", "--train-minutes", "5")
     assert p.returncode == 2 and "without --model only" in p.stderr, p.stderr
-    p = run_cli("loop", "--bag", bag, "--out", tmp / "o")
+    p = refused("loop", "--bag", bag, "--out", tmp / "o")
     assert p.returncode == 2 and "--bag needs --instances" in p.stderr, p.stderr
     assert not (tmp / "o").exists()
 
@@ -279,7 +279,7 @@ def test_the_loop_piles_a_nut_with_its_hole_where_the_grid_asks_for_one(tmp):
     net = checkpoint.load(out / "model" / "model.pt")["centre_net"]
     assert "a hexagonal nut with a hole 0.6" in net["piles_part"], net["piles_part"]
     # a recording's card names no part: the true shape to measure against must be given
-    bad = run_cli("card-shape", out / "model")
+    bad = refused("card-shape", out / "model")
     assert bad.returncode == 2 and "names no part" in bad.stderr, bad.stderr
     # given, both shapes are measured at the size the recording's estimated camera gives: the
     # data set's camera, from which the shipped nut's card measured its own rod
@@ -351,7 +351,7 @@ def test_the_loop_piles_a_disc_template_matched_to_the_frames_and_keeps_the_rod(
             (["--model", rod, "--match-piles", "--pile-tapers", "0.3,1"],
              "frustum of one disc"),  # the default two discs
             (["--model", rod, "--pile-tapers", "0.3,1"], "--pile-tapers")):
-        bad = run_cli(*base, *extra, "--out", tmp / "bad")
+        bad = refused(*base, *extra, "--out", tmp / "bad")
         assert bad.returncode == 2 and said in bad.stderr, (extra, bad.stderr)
         assert not (tmp / "bad").exists()
 
@@ -404,7 +404,7 @@ def test_the_loop_fits_a_convex_template_from_the_rod_and_piles_and_ships_it(tmp
              "valid: at most one"),
             (["--model", MODEL, "--convex-walls", "6"], "valid: with --convex-pieces"),
             (["--model", MODEL, "--convex-pieces", "-1"], "pieces -1 invalid")):
-        bad = run_cli(*base, *extra, "--out", tmp / "bad")
+        bad = refused(*base, *extra, "--out", tmp / "bad")
         assert bad.returncode == 2 and said in bad.stderr, (extra, bad.stderr)
         assert not (tmp / "bad").exists()
 
@@ -485,9 +485,9 @@ def test_the_default_loop_chooses_the_template_family_then_piles_it_once(tmp):
     p = run_cli(*args[:-9], "--families", "rod", "--out", tmp / "rod", "--print-recipe",
                 check=True)
     assert "families: [rod]" in p.stdout
-    bad = run_cli(*args[:5], "--out", tmp / "bad", "--families", "box,ring", "--convex-pieces",
+    bad = refused(*args[:5], "--out", tmp / "bad", "--families", "box,ring", "--convex-pieces",
                   "1")
     assert bad.returncode == 2 and "--families chooses the template" in bad.stderr, bad.stderr
-    bad = run_cli(*args[:5], "--out", tmp / "bad", "--families", "rod,cube")
+    bad = refused(*args[:5], "--out", tmp / "bad", "--families", "rod,cube")
     assert bad.returncode == 2 and "'rod,cube' invalid" in bad.stderr, bad.stderr
     assert not (tmp / "bad").exists()

@@ -12,7 +12,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
-from conftest import BAGS, REPO, run_cli
+from conftest import BAGS, REPO, refused, run_cli
 
 from inseggan_ros.core import checkpoint
 from inseggan_ros.data import datasets as data
@@ -169,7 +169,7 @@ def test_card_shape_adds_the_learned_template_against_the_true_part(tmp):
     assert (folder / "README.md").read_text() == card_markdown(card)
     assert (folder / "shape.png").stat().st_size > 0
     assert (folder / "model.pt").read_bytes() == weights
-    p = run_cli("card-shape", folder, "--object", "teapot")
+    p = refused("card-shape", folder, "--object", "teapot")
     assert p.returncode == 2 and "not a part of the simulator's library" in p.stderr, p.stderr
 
 
@@ -215,7 +215,7 @@ def test_card_run_records_another_training_run_on_the_cards_test_split(tmp, tiny
     for bad, why in ((dict(data=f"{card['data']['root']} (val)"), "the card's test split"),
                      (dict(frames=card["test"]["frames"] - 1), "score the run on all of them")):
         (tmp / "results.json").write_text(json.dumps({**results, **bad}))
-        p = run_cli(*args, "--label", "bad")
+        p = refused(*args, "--label", "bad")
         assert p.returncode == 2 and why in p.stderr, p.stderr
 
 
@@ -269,5 +269,5 @@ def test_card_settings_ships_other_settings_and_measures_the_card_anew(tmp):
     assert card["shape"] == old_card["shape"] and (folder / "shape.png").is_file()
     assert card.get("training_runs") == old_card.get("training_runs")
     assert (folder / "README.md").read_text() == card_markdown(card)
-    p = run_cli("card-settings", folder, "--data", tmp / "other", "--profile", "realtime")
+    p = refused("card-settings", folder, "--data", tmp / "other", "--profile", "realtime")
     assert p.returncode == 2 and "valid: the card's data set (seed 1, cone)" in p.stderr, p.stderr

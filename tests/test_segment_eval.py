@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 import torch
-from conftest import BAGS, run_cli
+from conftest import BAGS, refused, run_cli
 
 from inseggan_ros.io import bags
 from inseggan_ros.core.checkpoint import CheckpointError
@@ -137,11 +137,11 @@ def test_eval_cli_writes_table_json_and_png(tiny_model, tmp):
     r = json.loads((tmp / "ev2" / "results.json").read_text())
     assert (r["refine_steps"], r["refine_hypotheses"], r["smooth_iters"]) == (3, 2, 5)
     assert "3 refinement steps" in p.stdout and "5 smoothing iterations" in p.stdout
-    p = run_cli("eval", "--model", tiny_model / "run" / "best.pt", "--data",
+    p = refused("eval", "--model", tiny_model / "run" / "best.pt", "--data",
                 tiny_model / "data", "--frames", "4", "--out", tmp / "ev3",
                 "--refine-hypotheses", "0")
     assert p.returncode != 0 and "hypotheses 0 invalid; valid: >= 1" in p.stderr
-    p = run_cli("eval", "--model", tiny_model / "run" / "best.pt", "--data",
+    p = refused("eval", "--model", tiny_model / "run" / "best.pt", "--data",
                 tiny_model / "data", "--frames", "4", "--out", tmp / "ev5", "--smooth-iters", "-1")
     assert p.returncode == 2 and "smooth_iters -1 invalid; valid: >= 0" in p.stderr
 
@@ -152,7 +152,7 @@ def test_bad_model_files_give_one_clear_error(tmp):
                           (tmp / "junk.pt", "not a readable checkpoint")]:
         with pytest.raises(CheckpointError, match=message):
             Segmenter.from_checkpoint(path)
-        p = run_cli("eval", "--model", path, "--data", tmp, "--out", tmp / "x")
+        p = refused("eval", "--model", path, "--data", tmp, "--out", tmp / "x")
         assert p.returncode == 2 and message in p.stderr and "Traceback" not in p.stderr
     torch.save({"format": "something-else"}, tmp / "other.pt")
     with pytest.raises(CheckpointError, match="not an inseggan checkpoint"):

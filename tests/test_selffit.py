@@ -5,7 +5,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import run_cli, zbuffer_settings
+from conftest import refused, run_cli, zbuffer_settings
 
 from inseggan_ros.core import checkpoint
 from inseggan_ros.data import datasets as data
@@ -82,8 +82,8 @@ def test_self_fit_teaches_the_encoder_its_slow_labels_and_the_card_says_so(tmp):
 def test_self_fit_names_what_is_wrong(tmp):
     with pytest.raises(ValueError, match="frames 0 invalid; valid: >= 1"):
         SelfFitConfig(frames=0)
-    p = run_cli("self-fit", "--model", tmp / "none", "--data", tmp, "--out", tmp / "o")
+    p = refused("self-fit", "--model", tmp / "none", "--data", tmp, "--out", tmp / "o")
     assert p.returncode == 2 and "no model there" in p.stderr, p.stderr
-    p = run_cli("self-fit", "--model", CONE.parent, "--data", tmp, "--out", tmp / "o",
+    p = refused("self-fit", "--model", CONE.parent, "--data", tmp, "--out", tmp / "o",
                 "--settings", "no_such_settings")
     assert p.returncode == 2 and "no_such_settings" in p.stderr, p.stderr

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import run_cli
+from conftest import refused, run_cli
 
 from inseggan_ros.core import checkpoint
 from inseggan_ros.runtime.model import ConvexGenerator
@@ -203,7 +203,7 @@ def test_shape_fit_with_no_iterations_writes_the_discs_a_simulator_drops(tmp):
     assert "IoU with the true part" in p.stdout, p.stdout + p.stderr
     # the search's grid, refused without it
     for flag in ("--pile-stretches", "--pile-holes", "--fine-piles"):
-        bad = run_cli("shape-fit", "--model", MODEL, "--data", user, "--out", tmp / "bad",
+        bad = refused("shape-fit", "--model", MODEL, "--data", user, "--out", tmp / "bad",
                       "--start", "discs", "--iterations", "0", flag, "1", "--quiet")
         assert bad.returncode != 0 and "valid: with --match-piles" in bad.stderr, bad.stderr
         assert not (tmp / "bad").exists()

@@ -5,7 +5,7 @@ import json
 
 import pytest
 import torch
-from conftest import run_cli
+from conftest import refused, run_cli
 
 from inseggan_ros.core import checkpoint
 from inseggan_ros.learning import sizing
@@ -163,10 +163,10 @@ def test_the_loop_sizes_the_rod_then_chooses_its_scale_and_resumes(cylinders, tm
               "last.pt", out / "size_round1" / "scale.json")}
     run_cli(*args, check=True, timeout=600)
     assert {f: f.stat().st_mtime_ns for f in stamps} == stamps
-    p = run_cli("loop", "--model", start, "--data", cylinders, "--out", tmp / "o",
+    p = refused("loop", "--model", start, "--data", cylinders, "--out", tmp / "o",
                 "--size-rounds", "-1")
     assert p.returncode == 2 and "size_rounds -1 invalid" in p.stderr, p.stderr
-    p = run_cli("loop", "--model", resolve_model("wooden_block"), "--data", cylinders, "--out",
+    p = refused("loop", "--model", resolve_model("wooden_block"), "--data", cylinders, "--out",
                 tmp / "o", "--size-by-thickness")  # a convex template: refused before any stage
     assert p.returncode == 2 and "size a rod of spheres" in p.stderr, p.stderr
     assert not (tmp / "o").exists()

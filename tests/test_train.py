@@ -9,7 +9,7 @@ import time
 
 import pytest
 import torch
-from conftest import installed_executable, run_cli
+from conftest import installed_executable, refused, run_cli
 
 from inseggan_ros.core import checkpoint
 from inseggan_ros.runtime.segment import Segmenter
@@ -88,7 +88,7 @@ def test_killed_run_resumes_from_its_last_checkpoint(tmp, tiny_data):
     assert f"at iteration {saved}" in p.stdout
     assert checkpoint.load(out / "last.pt")["iteration"] == saved + 5
     # without --resume the run is protected
-    p = run_cli("train", "--data", tiny_data, "--out", out, "--iterations", "5", *TINY)
+    p = refused("train", "--data", tiny_data, "--out", out, "--iterations", "5", *TINY)
     assert p.returncode == 2 and "--resume" in p.stderr
 
 

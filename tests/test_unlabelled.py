@@ -8,7 +8,7 @@ from dataclasses import replace
 
 import pytest
 import torch
-from conftest import BAGS, REPO, run_cli, zbuffer_settings
+from conftest import BAGS, REPO, refused, run_cli, zbuffer_settings
 
 from inseggan_ros.io import bags
 from inseggan_ros.core import checkpoint
@@ -176,7 +176,7 @@ def test_export_with_a_labels_topic_adds_miou(tmp, small_bags):
     assert b[1] == pytest.approx(again, abs=1e-6)
     assert f"shipped sample bag `{SAMPLE_BAG.name}`: InSeGAN {b[1]['inseggan']:.3f}" in readme
     # a labels topic the bag does not have: a one-line error, nothing written
-    p = run_cli("export", "--checkpoint", MODEL, "--bag", unlabelled, "--labels-topic",
+    p = refused("export", "--checkpoint", MODEL, "--bag", unlabelled, "--labels-topic",
                 "/camera/depth/instance_labels", "--name", "y", "--out", tmp / "y")
     assert p.returncode == 2 and "not in the bag" in p.stderr and "Traceback" not in p.stderr
     assert not (tmp / "y").exists()
@@ -195,7 +195,7 @@ def test_check_writes_a_sheet_and_prints_the_measures(tmp, small_bags):
     one, three = (cv2.imread(str(sheets[c])) for c in (1, 3))
     assert one is not None and three is not None
     assert three.shape[0] > 2 * one.shape[0] and three.shape[1] == one.shape[1]  # a row a frame
-    p = run_cli("check", "--model", "no_such_model", "--bag", unlabelled, "--out", tmp / "z.png")
+    p = refused("check", "--model", "no_such_model", "--bag", unlabelled, "--out", tmp / "z.png")
     assert p.returncode == 2 and "shipped models" in p.stderr
 
 
@@ -212,7 +212,7 @@ def test_label_free_export_of_a_data_set(tmp):
     assert card["calibration"]["frames"] == 4 and card["measures"]["frames"] == 4
     assert card["labelled"]["methods"]["inseggan"]["miou_all"] > 0.5
     assert 0.5 < card["measures"]["coverage"] <= 1
-    p = run_cli("export", "--checkpoint", MODEL, "--data", root, "--label-free", "--topic", "/x",
+    p = refused("export", "--checkpoint", MODEL, "--data", root, "--label-free", "--topic", "/x",
                 "--name", "bad", "--out", tmp / "bad")
     assert p.returncode == 2 and "--topic" in p.stderr and not (tmp / "bad").exists()
     # the labelled export of the same data set (tau by mIoU on its validation labels) still works

@@ -16,7 +16,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from conftest import run_cli
+from conftest import refused, run_cli
 from inseggan_ros.io import bags
 from inseggan_ros.runtime.preprocess import roi_from_camera
 from inseggan_ros.sim.camera import CameraConfig, get_camera
@@ -140,7 +140,7 @@ def test_simulate_camera_from_a_bag(recorded, tmp):
     assert scene["bin"]["wall_height"] == BinConfig().wall_height  # the rest as it was
     assert math.isclose(scene["camera"]["tilt"], 10.0, abs_tol=0.5)
     # --camera and --camera-from exclude each other
-    proc = run_cli("simulate", "--camera-from", bag, "--camera", "default", "--count", 4,
+    proc = refused("simulate", "--camera-from", bag, "--camera", "default", "--count", 4,
                    "--out", tmp / "other")
     assert proc.returncode == 2 and "mutually exclusive" in proc.stderr
 
@@ -149,7 +149,7 @@ def test_bag_without_camera_info_is_refused(recorded, tmp):
     camera, _, bag = recorded["tilt10"]
     frames = [f.metres() for f in bags.read_frames(bag)]
     _write_bag(tmp / "no_info", frames, camera, with_info=False)
-    proc = run_cli("simulate", "--camera-from", tmp / "no_info", "--count", 4,
+    proc = refused("simulate", "--camera-from", tmp / "no_info", "--count", 4,
                    "--out", tmp / "data")
     assert proc.returncode == 2, proc.stderr
     assert "no sensor_msgs/CameraInfo" in proc.stderr

@@ -71,7 +71,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from scipy.stats import wasserstein_distance
 from tqdm import tqdm
 
 from inseggan_ros.core import checkpoint
@@ -236,6 +235,8 @@ def pile_distance(file: Path, data, meta, view: dict, folder: Path, ref: tuple,
     """`cfg.piles` scenes of the model `file`'s template simulated as the user's frames were
     taken and cut as they are (`pilematch.pile_frames`) -> the W1 distances of their heights
     and of their edge distances to `ref` (the user's: `frame_measures`)."""
+    from scipy.stats import wasserstein_distance  # here: scipy.stats takes a second to import
+
     x = pile_frames(file, data, meta, view, folder, cfg.piles, cfg.seed, cfg.workers)
     return tuple(float(wasserstein_distance(a, b)) for a, b in zip(frame_measures(x), ref))
 

@@ -58,7 +58,6 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
-from scipy.stats import wasserstein_distance
 from tqdm import tqdm
 
 from inseggan_ros.evaluation.evaluate import write_json
@@ -227,6 +226,8 @@ class _Search:
     def measure(self, stage: str, grid: list[tuple[float, ...]], count: int) -> list[dict]:
         """Each variant of `grid` piled `count` times, its heights' distance to the user's ->
         its row (measured now or before)."""
+        from scipy.stats import wasserstein_distance  # here: a second to import
+
         cfg, done = self.cfg, self.done
         rows = []
         for v in tqdm(grid, desc=f"piles ({stage})", unit="variant", disable=not self.progress):
