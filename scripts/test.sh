@@ -30,7 +30,10 @@ run() {
 rm -f build/inseggan_ros/pytest*.xml
 if [ "$JOBS" -gt 1 ] && python -c "import xdist" 2>/dev/null; then
   # one thread each (OMP_NUM_THREADS, which torch follows): JOBS processes share the cores
-  OMP_NUM_THREADS=${OMP_NUM_THREADS:-1} run -m "not serial$NOT_SLOW" -n "$JOBS" --dist loadfile "$@"
+  # --no-loadscope-reorder: the files in the order tests/conftest.py collects them (the
+  # longest first), not by their number of tests, which starts the loop's few long ones last
+  OMP_NUM_THREADS=${OMP_NUM_THREADS:-1} run -m "not serial$NOT_SLOW" -n "$JOBS" --dist loadfile \
+    --no-loadscope-reorder "$@"
   rc=$?
   # colcon test writes build/inseggan_ros/pytest.xml each time: keep the first run's beside it
   [ -f build/inseggan_ros/pytest.xml ] && mv build/inseggan_ros/pytest.xml build/inseggan_ros/pytest_parallel.xml

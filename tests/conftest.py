@@ -144,12 +144,14 @@ def which(name):
     return shutil.which(name)
 
 
-# The test files that train or simulate the most, longest first: collected before the others so
-# that, when pytest-xdist shares the files between processes (scripts/test.sh), none of them
+# The test files that train or simulate the most, longest first (their tests' summed time in a
+# full run): collected before the others so that, when pytest-xdist shares the files between
+# processes (scripts/test.sh, whose --no-loadscope-reorder keeps this order), none of them
 # starts last and leaves the other process idle.
-LONGEST_FIRST = ("test_loop.py", "test_family.py", "test_distill.py", "test_train.py",
-                 "test_unlabelled.py",
-                 "test_label_head.py", "test_selffit.py", "test_models.py", "test_template.py")
+LONGEST_FIRST = ("test_loop.py", "test_distill.py", "test_models.py", "test_pilematch.py",
+                 "test_train.py", "test_centres.py", "test_cli.py", "test_shapefit.py",
+                 "test_family.py", "test_unlabelled.py", "test_selffit.py", "test_label_head.py",
+                 "test_sizing.py", "test_dataset.py", "test_bags.py", "test_template.py")
 
 
 # The tests that took nine seconds or more in a full run, and some of six or more (training,
