@@ -156,7 +156,7 @@ LONGEST_FIRST = ("test_loop.py", "test_distill.py", "test_models.py", "test_pile
 
 # The tests that took nine seconds or more in a full run, and some of six or more (training,
 # simulation, a whole loop, several CLI processes): marked `slow`, so that the fast tier (`make
-# test-fast`, `-m "not slow"`) runs in under 3 minutes for every change; `make test` (CI) runs
+# test-fast`, `-m "not slow"`) runs in about 5 minutes for every change; `make test` (CI) runs
 # them all.
 SLOW = {
     "test_loop.py": (
