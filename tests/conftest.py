@@ -47,11 +47,11 @@ def run_cli(*args, timeout=300, check=False) -> subprocess.CompletedProcess:
     return proc
 
 
-def refused(*args, timeout=None) -> subprocess.CompletedProcess:
+def refused(*args) -> subprocess.CompletedProcess:
     """`inseggan ARGS` run in this process, for a command expected to refuse its input:
     the same parser, checks and one-line errors (`cli.app.main`) as the installed command,
     without a new interpreter's start-up (about 3 s of imports a call, most of a refusal's
-    time). The commands that must work run through `run_cli`. `timeout` is ignored."""
+    time). The commands that must work run through `run_cli`."""
     import contextlib
     import io
 

@@ -125,7 +125,7 @@ def test_a_printed_recipe_read_back_resolves_the_same_and_flags_override_it(tmp)
     assert {k: v for k, v in over.items() if k not in changed} \
         == {k: v for k, v in first.items() if k not in changed}
     # a flag turned off over the file's (--no-match-piles), its grid still set: refused, by name
-    p = refused("loop", "--recipe", recipe, "--no-match-piles", "--print-recipe", timeout=120)
+    p = refused("loop", "--recipe", recipe, "--no-match-piles", "--print-recipe")
     assert p.returncode == 2 and "valid: with --match-piles" in p.stderr, p.stderr
 
 
@@ -146,7 +146,7 @@ def test_a_printed_recipe_read_back_resolves_the_same_and_flags_override_it(tmp)
 def test_a_recipe_with_an_unknown_or_bad_option_is_refused_by_name(tmp, text, message):
     recipe = tmp / "bad.yaml"
     recipe.write_text(text)
-    p = refused("loop", "--recipe", recipe, "--print-recipe", timeout=120)
+    p = refused("loop", "--recipe", recipe, "--print-recipe")
     assert p.returncode == 2 and message in p.stderr and "Traceback" not in p.stderr, p.stderr
     assert str(recipe) in p.stderr or "--out" in p.stderr
 
@@ -188,7 +188,7 @@ def test_ship_puts_a_runs_model_and_recipe_in_place_whole_and_only_once(tmp):
     assert _config(_print_recipe("--recipe", recipes / "my_part.yaml")) == _config(written)
     # not twice without --force; nothing left half-written beside it
     stamp = (folder / "card.json").stat().st_mtime_ns
-    p = refused("ship", run, "--name", "my_part", "--into", into, timeout=120)
+    p = refused("ship", run, "--name", "my_part", "--into", into)
     assert p.returncode == 2 and "exists; valid: another --name, or --force" in p.stderr
     assert (folder / "card.json").stat().st_mtime_ns == stamp
     p = run_cli("ship", run, "--name", "my_part", "--into", into, "--force", timeout=120)
@@ -199,16 +199,16 @@ def test_ship_puts_a_runs_model_and_recipe_in_place_whole_and_only_once(tmp):
 
 def test_ship_refuses_a_folder_without_a_model_or_a_recipe_and_a_bad_name(tmp):
     run = _run_folder(tmp)
-    p = refused("ship", run, "--name", "../up", "--into", tmp / "models", timeout=120)
+    p = refused("ship", run, "--name", "../up", "--into", tmp / "models")
     assert p.returncode == 2 and "--name '../up' invalid; valid: letters" in p.stderr
     (run / "recipe.yaml").unlink()
-    p = refused("ship", run, "--name", "x", "--into", tmp / "models", timeout=120)
+    p = refused("ship", run, "--name", "x", "--into", tmp / "models")
     assert p.returncode == 2 and "recipe.yaml: missing" in p.stderr and "--no-recipe" in p.stderr
     assert not (tmp / "models" / "x").exists()
     p = run_cli("ship", run, "--name", "x", "--into", tmp / "models", "--no-recipe", timeout=120)
     assert p.returncode == 0 and (tmp / "models" / "x" / "model.pt").is_file(), p.stderr
     assert not (tmp / "config").exists()
-    p = refused("ship", tmp, "--name", "y", "--into", tmp / "models", timeout=120)
+    p = refused("ship", tmp, "--name", "y", "--into", tmp / "models")
     assert p.returncode == 2 and "model.pt: missing" in p.stderr
 
 

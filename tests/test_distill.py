@@ -246,7 +246,7 @@ def test_the_users_own_frames_are_reconstructed_better_with_their_loss(tmp, cyl_
     assert after < 0.95 * before, f"label loss {before:.4f} -> {after:.4f}"
     run_cli(*common, "--out", tmp / "with_user", "--user-data", user, "--user-weight", "2",
             check=True, timeout=600)
-    bad = refused(*common, "--out", tmp / "bad", "--user-weight", "1", timeout=600)
+    bad = refused(*common, "--out", tmp / "bad", "--user-weight", "1")
     assert bad.returncode != 0 and "--user-data and --user-weight go together" in bad.stderr
     x = torch.from_numpy(load_sim_split(user, "train")["x"])
 
