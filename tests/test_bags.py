@@ -227,6 +227,27 @@ def test_cli_simulate_bag_is_atomic(tmp):
     assert [p.name for p in tmp.iterdir()] == ["cones"]
 
 
+def test_cli_simulate_bag_in_another_cell(tmp):
+    """--mount-height and --bin-size: the same scene seen from a camera 20 % higher, in a bin
+    20 % larger, has its floor 20 % farther and its bin as many pixels across."""
+    from inseggan_ros.runtime.preprocess import prepare
+
+    base = ("simulate-bag", "--quiet", "--count", "1", "--seed", "5", "--instances", "3")
+    run_cli(*base, "--out", tmp / "here", check=True)
+    run_cli(*base, "--mount-height", "0.42", "--bin-size", "0.108,0.108", "--out",
+            tmp / "there", check=True)
+    here, there = (prepare(read_all(tmp / name)[0].metres()) for name in ("here", "there"))
+    assert there.floor_depth / here.floor_depth == pytest.approx(1.2, rel=0.02)
+    sides = np.subtract(there.roi[2:], there.roi[:2]) / np.subtract(here.roi[2:], here.roi[:2])
+    assert np.allclose(sides, 1.0, atol=0.08), (here.roi, there.roi)
+    for bad, why in ((("--bin-size", "0.09"), "is not two lengths like 0.09,0.09"),
+                     (("--bin-size", "0.02,0.02"), "valid: 0.03..2 m per side"),
+                     (("--mount-height", "0.01"), "need 0 < near < mount_height < far")):
+        p = refused("simulate-bag", *bad, "--out", tmp / "bad")
+        assert p.returncode == 2 and why in p.stderr, p.stderr
+        assert not (tmp / "bad").exists()
+
+
 # ------------------------------------------------- compressedDepth, and camera info by stamp
 @pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
 @pytest.mark.parametrize("encoding", ["16UC1", "32FC1"])

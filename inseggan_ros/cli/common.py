@@ -58,6 +58,15 @@ def offset(text: str) -> tuple[float, float]:
     return parts
 
 
+def bin_size(text: str) -> tuple[float, float]:
+    """--bin-size: the bin's inner width and length, metres."""
+    parts = floats(text) or ()
+    if len(parts) != 2 or not all(p > 0 for p in parts):
+        raise argparse.ArgumentTypeError(f"{text!r} is not two lengths like 0.09,0.09 (the "
+                                         "bin's inner width,length in metres)")
+    return parts
+
+
 def scene_config(args):
     """The `SceneConfig` of the scene flags (`add_scene_args`)."""
     from dataclasses import replace
@@ -67,12 +76,21 @@ def scene_config(args):
     from inseggan_ros.sim.scene import SceneConfig
 
     camera = get_camera(args.camera, args.width, args.height)
+    scene = SceneConfig(object=args.object, instances=args.instances,
+                        min_instances=args.min_instances, noise=get_noise(args.noise))
+    return replace(scene, **cell(args, camera, scene.bin))
+
+
+def cell(args, camera, bin) -> dict:
+    """The camera and the bin with the scene flags' overrides of their pose and size (--tilt,
+    --roll, --bin-offset, --mount-height, --bin-size): `SceneConfig` fields."""
+    from dataclasses import replace
+
     pose = {k: v for k, v in (("tilt", args.tilt), ("roll", args.roll),
-                              ("bin_offset", args.bin_offset)) if v is not None}
-    return SceneConfig(object=args.object, instances=args.instances,
-                       min_instances=args.min_instances,
-                       camera=replace(camera, **pose) if pose else camera,
-                       noise=get_noise(args.noise))
+                              ("bin_offset", args.bin_offset),
+                              ("mount_height", args.mount_height)) if v is not None}
+    return {"camera": replace(camera, **pose),
+            "bin": bin if args.bin_size is None else replace(bin, inner_size=args.bin_size)}
 
 
 def part(name: str) -> str:
@@ -112,6 +130,11 @@ def add_scene_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bin-offset", type=offset,
                    help="override where the bin's centre appears: fractions of the image "
                         "width,height from the principal point, e.g. -0.15,0.08")
+    p.add_argument("--mount-height", type=float, metavar="M",
+                   help="override the preset's camera height above the bin floor, metres "
+                        "(another cell: a camera mounted higher or lower)")
+    p.add_argument("--bin-size", type=bin_size, metavar="X,Y",
+                   help="the bin's inner width,length in metres (default 0.09,0.09)")
 
 
 def frames_args(p, required: bool = True) -> None:

@@ -32,10 +32,8 @@ def cmd_simulate(args) -> int:
         print(line)
         if args.width is not None or args.height is not None:
             cam = cam.resized(args.width or cam.width, args.height or cam.height)
-        pose = {k: v for k, v in (("tilt", args.tilt), ("roll", args.roll),
-                                  ("bin_offset", args.bin_offset)) if v is not None}
-        scene = replace(scene, camera=replace(cam, **pose),
-                        bin=replace(scene.bin, inner_size=tuple(size)))
+        scene = replace(scene, **common.cell(args, cam,
+                                             replace(scene.bin, inner_size=tuple(size))))
     spec = DatasetSpec.from_fractions(scene, args.count, args.split,
                                       seed=args.seed, shard_size=args.shard_size)
     t0 = time.perf_counter()
@@ -119,8 +117,8 @@ def add_simulate(sub) -> argparse.ArgumentParser:
     p.add_argument("--camera-from", type=Path, metavar="BAG",
                    help="the camera (and bin inner size) estimated from up to 30 depth frames "
                         "of a bag with a sensor_msgs/CameraInfo beside them, instead of "
-                        "--camera PRESET (--tilt, --roll, --bin-offset, --width, --height "
-                        "still override)")
+                        "--camera PRESET (--tilt, --roll, --bin-offset, --mount-height, "
+                        "--bin-size, --width, --height still override)")
     p.add_argument("--topic", help="with --camera-from: the depth topic (default: auto)")
     p.set_defaults(func=cmd_simulate, camera=None)  # None: not given (default preset)
     return p
