@@ -154,10 +154,11 @@ LONGEST_FIRST = ("test_loop.py", "test_distill.py", "test_models.py", "test_pile
                  "test_sizing.py", "test_dataset.py", "test_bags.py", "test_template.py")
 
 
-# The tests that took nine seconds or more in a full run, and some of six or more (training,
-# simulation, a whole loop, several CLI processes): marked `slow`, so that the fast tier (`make
-# test-fast`, `-m "not slow"`) runs in about 5 minutes for every change; `make test` (CI) runs
-# them all.
+# The tests that took about four seconds or more in a run of the fast tier (training,
+# simulation, a whole loop, several CLI processes, a node replaying a bag): marked `slow`, so
+# that the fast tier (`make test-fast`, `-m "not slow"`) runs in about 3 minutes for every
+# change; `make test` (CI) runs them all. An entry names a test (every case of it) or one case
+# of a parametrized test ("name[case]"); the fast tier keeps a quicker case of each.
 SLOW = {
     "test_loop.py": (
         "test_a_tiny_loop_explains_held_out_scenes_of_its_shape_better_than_its_starting_point",
@@ -169,6 +170,7 @@ SLOW = {
         "test_loop_refuses_a_missing_model_and_frames_of_another_camera",
     ),
     "test_family.py": (
+        "test_a_scale_at_which_the_bin_cannot_hold_n_parts_is_no_candidate_s_end",
         "test_a_block_s_frames_choose_a_box_over_the_rod_and_the_taper_and_resume",
     ),
     "test_train.py": (
@@ -194,6 +196,7 @@ SLOW = {
         "test_distill_refuses_a_learned_renderer_and_a_missing_checkpoint",
     ),
     "test_pilematch.py": (
+        "test_a_recording_s_piles_are_seen_through_the_camera_its_frames_give",
         "test_piles_choose_the_head_the_frames_were_made_of_and_a_search_resumes",
         "test_a_uniform_rod_gets_the_flange_its_frames_were_made_of",
         "test_the_card_draws_the_piles_template_beside_the_models_own",
@@ -201,12 +204,21 @@ SLOW = {
         "test_a_cone_s_piles_choose_a_frustum_with_its_taper_over_a_straight_disc",
     ),
     "test_models.py": (
+        "test_segments_its_sample_bag_as_its_card_says[bolt]",
+        "test_segments_its_sample_bag_as_its_card_says[bolt_tilted]",
+        "test_segments_its_sample_bag_as_its_card_says[cone_tilted]",
+        "test_segments_its_sample_bag_as_its_card_says[hex_nut_tilted]",
+        "test_segments_its_sample_bag_as_its_card_says[pin_connector_tilted]",
+        "test_segments_its_sample_bag_as_its_card_says[stopper_tilted]",
+        "test_segments_its_sample_bag_as_its_card_says[wooden_block_tilted]",
         "test_card_run_records_another_training_run_on_the_cards_test_split",
         "test_card_shape_adds_the_learned_template_against_the_true_part",
         "test_card_settings_ships_other_settings_and_measures_the_card_anew",
         "test_quality_settings_segment_the_default_models_bag_better_than_kmeans",
     ),
     "test_template.py": (
+        "test_shape_fidelity_of_known_bodies",
+        "test_a_rod_of_spheres_as_pieces_holds_the_spheres_and_little_else",
         "test_exact_height_map_matches_ray_casting",
         "test_short_training_run_moves_a_box_template_towards_the_true_block",
     ),
@@ -231,12 +243,18 @@ SLOW = {
         "test_large_frames_arrive_between_processes_with_the_profile",
     ),
     "test_bin_replay.py": (
+        "test_simulated_frames_as_compressed_depth",
+        "test_large_frames_arrive_with_only_what_ros2_run_sets_up",
+        "test_bag_frames_arrive_with_their_stamps[hex_nut_sim_32fc1]",
+        "test_compressed_bag_replays_as_raw_images[hex_nut_sim_32fc1]",
+        "test_compressed_bag_replayed_as_compressed_depth_passes_its_bytes",
         "test_simulated_frames_arrive_over_dds",
     ),
     "test_selffit.py": (
         "test_self_fit_teaches_the_encoder_its_slow_labels_and_the_card_says_so",
     ),
     "test_shapefit.py": (
+        "test_a_killed_fit_resumes_where_it_stopped_and_ends_as_an_unbroken_one",
         "test_a_short_fit_moves_the_box_towards_the_true_block_and_is_not_redone",
         "test_shape_fit_with_no_iterations_writes_the_discs_a_simulator_drops",
     ),
@@ -262,17 +280,41 @@ SLOW = {
         "test_an_empty_bin_gives_no_instance_and_the_diagnostics_say_so",
     ),
     "test_dataset.py": (
+        "test_one_worker_and_two_workers_make_the_same_data_set",
+        "test_contact_sheet_png",
+        "test_simulate_splits_shards_and_bags",
+        "test_bench_sim_prints_throughput",
         "test_existing_output_and_bad_arguments",
     ),
     "test_compressed_depth.py": (
         "test_cli_bag_info_and_check_on_a_compressed_bag",
     ),
     "test_cli.py": (
+        "test_a_printed_recipe_read_back_resolves_the_same_and_flags_override_it",
+        "test_loop_help_shows_the_users_options_and_the_advanced_help_the_research_ones",
         "test_ship_refuses_a_folder_without_a_model_or_a_recipe_and_a_bad_name",
         "test_ship_puts_a_runs_model_and_recipe_in_place_whole_and_only_once",
     ),
     "test_bags.py": (
+        "test_cli_simulate_bag_is_atomic",
+        "test_cli_simulate_bag_in_another_cell",
+        "test_camera_info_recorded_after_its_image[sqlite3]",
+        "test_cli_shows_the_warning_once",
+        "test_bin_replay_node_replays_a_cut_bag_and_warns_once",
         "test_cli_errors_are_one_line_without_traceback",
+    ),
+    "test_budget.py": (
+        "test_the_centre_stage_takes_the_iterations_its_share_holds_and_keeps_them_on_resume",
+        "test_the_family_makes_its_first_candidate_and_no_more_once_its_share_is_spent",
+    ),
+    "test_model.py": (
+        "test_a_bfloat16_centre_net_gives_the_float32_labels",
+    ),
+    "test_user_camera.py": (
+        "test_simulate_camera_from_a_bag",
+    ),
+    "test_counts_sim.py": (
+        "test_simulate_draws_a_count_per_scene_from_the_command_line",
     ),
 }
 
@@ -280,7 +322,8 @@ SLOW = {
 @pytest.hookimpl(tryfirst=True)  # before -m deselects by the markers added here
 def pytest_collection_modifyitems(config, items):
     for item in items:
-        if item.originalname in SLOW.get(item.path.name, ()):
+        slow = SLOW.get(item.path.name, ())
+        if item.originalname in slow or item.name in slow:
             item.add_marker(pytest.mark.slow)
     rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: file order kept
