@@ -81,7 +81,7 @@ def scene_config(args):
     return replace(scene, **cell(args, camera, scene.bin))
 
 
-def cell(args, camera, bin) -> dict:
+def cell(args, camera, bin_cfg) -> dict:
     """The camera and the bin with the scene flags' overrides of their pose and size (--tilt,
     --roll, --bin-offset, --mount-height, --bin-size): `SceneConfig` fields."""
     from dataclasses import replace
@@ -90,7 +90,7 @@ def cell(args, camera, bin) -> dict:
                               ("bin_offset", args.bin_offset),
                               ("mount_height", args.mount_height)) if v is not None}
     return {"camera": replace(camera, **pose),
-            "bin": bin if args.bin_size is None else replace(bin, inner_size=args.bin_size)}
+            "bin": bin_cfg if args.bin_size is None else replace(bin_cfg, inner_size=args.bin_size)}
 
 
 def part(name: str) -> str:
