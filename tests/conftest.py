@@ -156,9 +156,9 @@ LONGEST_FIRST = ("test_loop.py", "test_distill.py", "test_models.py", "test_pile
 
 # The tests that took about four seconds or more in a run of the fast tier (training,
 # simulation, a whole loop, several CLI processes, a node replaying a bag): marked `slow`, so
-# that the fast tier (`make test-fast`, `-m "not slow"`) runs in about 3 minutes for every
-# change; `make test` (CI) runs them all. An entry names a test (every case of it) or one case
-# of a parametrized test ("name[case]"); the fast tier keeps a quicker case of each.
+# that the fast tier (`make test-fast`, `-m "not slow"`) runs in under 3 minutes on 2 cores
+# for every change; `make test` (CI) runs them all. An entry names a test (every case of it)
+# or one case of a parametrized test ("name[case]"); the fast tier keeps a quicker case of each.
 SLOW = {
     "test_loop.py": (
         "test_a_tiny_loop_explains_held_out_scenes_of_its_shape_better_than_its_starting_point",

@@ -69,16 +69,14 @@ def bin_size(text: str) -> tuple[float, float]:
 
 def scene_config(args):
     """The `SceneConfig` of the scene flags (`add_scene_args`)."""
-    from dataclasses import replace
-
     from inseggan_ros.sim.camera import get_camera
     from inseggan_ros.sim.noise import get_noise
-    from inseggan_ros.sim.scene import SceneConfig
+    from inseggan_ros.sim.scene import BinConfig, SceneConfig
 
     camera = get_camera(args.camera, args.width, args.height)
-    scene = SceneConfig(object=args.object, instances=args.instances,
-                        min_instances=args.min_instances, noise=get_noise(args.noise))
-    return replace(scene, **cell(args, camera, scene.bin))
+    return SceneConfig(object=args.object, instances=args.instances,
+                       min_instances=args.min_instances, noise=get_noise(args.noise),
+                       **cell(args, camera, BinConfig()))
 
 
 def cell(args, camera, bin_cfg) -> dict:
