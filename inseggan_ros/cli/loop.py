@@ -115,11 +115,14 @@ def _stage_options(g) -> None:
     g.add_argument("--centre-iterations", type=int, default=3000,
                    help="train centre votes (`inseggan centres`) on the same piles for this "
                         "many iterations and ship the model with them on (3000; 0: none)")
-    g.add_argument("--centre-teacher", choices=("piles", "self-labels"), default="piles",
+    g.add_argument("--centre-teacher", choices=("piles", "self-labels", "pasted"),
+                   default="piles",
                    help="what teaches the centre votes: the same piles' labels (piles, the "
-                        "default), or the user's training frames labelled by the model itself "
+                        "default), the user's training frames labelled by the model itself "
                         "(self-labels; no label read; better where the learned shape is not "
-                        "the real part's)")
+                        "the real part's), or piles pasted from the parts seen whole in the "
+                        "user's frames (pasted; no template, no label; better where no "
+                        "template family has the part's outline)")
     g.add_argument("--self-frames", type=int, default=0,
                    help="then fit the encoder further to the model's own labels (at "
                         "--self-settings) of this many of the user's training frames, no label "

@@ -699,6 +699,11 @@ def _centres_line(card: dict) -> list[str]:
                 f"), labelled by this model itself{with_} with its centre votes {votes} (no "
                 f"true label read), {c.get('iterations')} iterations; agreement with those "
                 f"labels on {c.get('val_frames')} more frames {best}"]
+    if c.get("teacher") == "pasted piles":
+        return [f"* **Centre votes** ({used}): a {c['width']}-wide network taught on "
+                f"{c.get('train_frames')} piles pasted from the {c.get('piles_part')} "
+                f"(`{c.get('sim')}`; no template, no label), {c.get('iterations')} iterations; "
+                f"mIoU on {c.get('val_frames')} more such piles {best}"]
     return [f"* **Centre votes** ({used}): a {c['width']}-wide network taught on "
             f"{c.get('train_frames')} labelled simulated piles of "
             f"{c.get('piles_part') or 'the learned part'} (`{c.get('sim')}`), "

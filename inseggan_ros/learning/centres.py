@@ -200,7 +200,8 @@ def _plot(history: list, path) -> None:
 def fit(model, sim, out, cfg: CentreConfig = CentreConfig(), frames: int | None = None,
         progress: bool = True, as_given: bool = False, self_labels: bool = False,
         held_out: int = 200, workers: int = 1, user_frames: dict | None = None,
-        teacher_votes: bool = False, teacher_settings: str = "own") -> dict:
+        teacher_votes: bool = False, teacher_settings: str = "own",
+        pasted=None) -> dict:
     """Centre votes for `model` (a checkpoint) from the labelled scenes of the simulated data
     set `sim` (train split to learn from, val split to choose the best iteration), cut as the
     model's preprocessing cuts frames (`as_given`: as a bag's, the bin found in every frame):
@@ -218,7 +219,11 @@ def fit(model, sim, out, cfg: CentreConfig = CentreConfig(), frames: int | None 
     2026-11-29). The labels are saved chunk by chunk in out/self_labels.npz, and a killed run
     resumes them. `user_frames` ({x, fg}, cut as the model cuts them), where given, are those
     frames instead of `sim`'s (which then only names them: the loop's bag frames before its
-    held-out cut)."""
+    held-out cut).
+
+    With `pasted` (a `pasted.PasteConfig`), the piles are instead pasted from the parts seen
+    whole in `user_frames` (`learning.pasted`): no template and no label; the card says how
+    many parts were found."""
     from dataclasses import replace
 
     from inseggan_ros.core import checkpoint
@@ -230,22 +235,14 @@ def fit(model, sim, out, cfg: CentreConfig = CentreConfig(), frames: int | None 
     state = checkpoint.load(model)
     seg = Segmenter.from_checkpoint(model, device="cpu")
     n = seg.model_cfg.n_instances
-    if teacher_votes and not self_labels:
-        raise ValueError("the teacher's centre votes (--teacher-centre-votes) without "
-                         "self-labels: piles carry their own labels; valid: with "
-                         "--self-labels, or without the teacher's votes")
-    if teacher_settings != "own":
-        from inseggan_ros.learning.selffit import check_settings
-        if not self_labels:
-            raise ValueError(f"the teacher's settings (--teacher-settings {teacher_settings}) "
-                             "without self-labels: piles carry their own labels; valid: with "
-                             "--self-labels, or own")
-        check_settings(teacher_settings)
-    if teacher_votes and seg.centre_net is None:
-        raise ValueError(f"{model}: no centre-vote network to label with "
-                         "(--teacher-centre-votes); valid: a model with centre votes "
-                         "(`inseggan centres` makes one), or without the teacher's votes")
-    if self_labels:
+    _check_teacher(model, seg, self_labels, teacher_votes, teacher_settings)
+    if pasted is not None:
+        from inseggan_ros.learning.pasted import paste_splits
+        if self_labels or user_frames is None:
+            raise ValueError("pasted piles need the user's frames (user_frames) and no "
+                             "self-labels; valid: one teacher")
+        splits = paste_splits(user_frames, n, seg.prep_cfg, pasted)
+    elif self_labels:
         splits = _self_labelled(model, seg, sim, out, frames, held_out, workers, progress,
                                 user_frames, teacher_votes, teacher_settings)
     else:
@@ -262,15 +259,39 @@ def fit(model, sim, out, cfg: CentreConfig = CentreConfig(), frames: int | None 
     inference = replace(InferenceConfig.from_dict(state.get("inference", {})),
                         centre_votes="on", label_head="off")  # the votes instead of a head
     keep = {k: v for k, v in state.items() if k not in ("format", "optimizers", "rng")}
+    teacher = ("pasted piles" if pasted is not None else
+               ("self-labels" if self_labels else "piles")
+               + (" with its centre votes" if teacher_votes else ""))
     keep.update(centre_net={**net_state(net), "sim": str(sim),
-                            "piles_part": None if self_labels else piles_part(sim),
-                            "teacher": ("self-labels" if self_labels else "piles")
-                            + (" with its centre votes" if teacher_votes else ""),
+                            "piles_part": (None if self_labels else
+                                           f"{splits['parts']} parts seen whole in the user's "
+                                           "frames" if pasted is not None else piles_part(sim)),
+                            "teacher": teacher,
                             "teacher_settings": teacher_settings if self_labels else None,
                             "summary": {k: v for k, v in summary.items() if k != "history"}},
                 inference=inference.to_dict())
     checkpoint.save(out / "model.pt", keep)
     return {**summary, "model": str(out / "model.pt")}
+
+
+def _check_teacher(model, seg, self_labels: bool, teacher_votes: bool,
+                   teacher_settings: str) -> None:
+    """What `fit` refuses of the self-labels' teacher, before any frame is read."""
+    if teacher_votes and not self_labels:
+        raise ValueError("the teacher's centre votes (--teacher-centre-votes) without "
+                         "self-labels: piles carry their own labels; valid: with "
+                         "--self-labels, or without the teacher's votes")
+    if teacher_settings != "own":
+        from inseggan_ros.learning.selffit import check_settings
+        if not self_labels:
+            raise ValueError(f"the teacher's settings (--teacher-settings {teacher_settings}) "
+                             "without self-labels: piles carry their own labels; valid: with "
+                             "--self-labels, or own")
+        check_settings(teacher_settings)
+    if teacher_votes and seg.centre_net is None:
+        raise ValueError(f"{model}: no centre-vote network to label with "
+                         "(--teacher-centre-votes); valid: a model with centre votes "
+                         "(`inseggan centres` makes one), or without the teacher's votes")
 
 
 def piles_part(sim) -> str | None:

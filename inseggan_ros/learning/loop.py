@@ -66,7 +66,8 @@ resumes from its last checkpoint; the export writes its folder atomically):
   4b. centres (only with `centre_iterations`): centre votes (`centres.py`) taught on the same
      piles; the model with them (`centre_votes: on`) is out/centres/model.pt; or, with
      `centre_teacher` "self-labels", taught on the user's training frames labelled by the
-     model itself (out/centres_self/model.pt);
+     model itself (out/centres_self/model.pt), or with "pasted", on piles pasted from the
+     parts seen whole in the user's training frames (`pasted.py`; out/centres_pasted/model.pt);
   5. export: out/model with the shipped settings (`export_settings`, realtime.yaml), the
      superpixel vote's scale chosen on the last piles' validation split (`vote_scales`,
      `vote_scale.py`: the piles' labels are the loop's own), tau and the card from the user's
@@ -133,7 +134,9 @@ class LoopConfig:
     # on by default: every recording-made shipped model is made so)
     centre_teacher: str = "piles"  # what teaches them: "piles", the same scenes' labels; or
     # "self-labels", the user's training frames labelled by the model itself (no label read;
-    # better where the learned part is not the real one: docs/experiments.md, 2026-11-29)
+    # better where the learned part is not the real one: docs/experiments.md, 2026-11-29); or
+    # "pasted", piles pasted from the parts seen whole in those frames (`pasted.py`; no
+    # template: better where no family has the part's outline, docs/experiments.md, 2026-12-08)
     seed: int = 11  # of the simulated scenes
     workers: int = 1  # simulation processes (and self-labelling processes)
     name: str = "model"  # the exported model's name
@@ -209,9 +212,9 @@ class LoopConfig:
         if self.centre_iterations < 0 or 0 < self.centre_iterations < 4:
             raise ValueError(f"centre_iterations {self.centre_iterations!r} invalid; valid: "
                              "0 (no centre votes) or >= 4")
-        if self.centre_teacher not in ("piles", "self-labels"):
-            raise ValueError(f"centre_teacher {self.centre_teacher!r} invalid; valid: piles, "
-                             "self-labels")
+        if self.centre_teacher not in CENTRE_TEACHERS:
+            raise ValueError(f"centre_teacher {self.centre_teacher!r} invalid; valid: "
+                             f"{', '.join(CENTRE_TEACHERS)}")
         if self.centre_iterations and self.head_iterations:
             raise ValueError("head_iterations and centre_iterations both set: the labels come "
                              "from one of them; valid: at most one above 0")
@@ -306,12 +309,17 @@ def label_head_stage(model: Path, sim: Path, data, out: Path, cfg: LoopConfig,
                     as_given=isinstance(data, BagFrames))["model"])
 
 
+# what may teach the loop's centre votes (`LoopConfig.centre_teacher`) -> its stage's folder
+CENTRE_TEACHERS = {"piles": "centres", "self-labels": "centres_self", "pasted": "centres_pasted"}
+
+
 def centres_stage(model: Path, sim: Path, view: dict, data, out: Path, cfg: LoopConfig,
                   progress: bool = True, budget: Budget | None = None) -> Path:
     """Stage 4b: centre votes (`centres.fit`) for the model on the last simulated piles, cut
     as the user's frames are (`view`), or with `cfg.centre_teacher` "self-labels" on the user's
     training frames (a data set's train split, a bag's frames before the held-out cut)
-    labelled by the model itself, the last fifth of them (at most 200) kept to choose by ->
+    labelled by the model itself, the last fifth of them (at most 200) kept to choose by, or
+    with "pasted" on piles pasted from the parts seen whole in those frames (`pasted.py`) ->
     out/model.pt. A killed run resumes from out/last.pt; skipped when out/model.pt exists."""
     from inseggan_ros.learning.centres import CentreConfig, fit
 
@@ -328,6 +336,12 @@ def centres_stage(model: Path, sim: Path, view: dict, data, out: Path, cfg: Loop
     prep = Segmenter.from_checkpoint(model, device="cpu").prep_cfg
     frames = _user_frames(data, prep, "train", None, progress)
     source = data.path if isinstance(data, BagFrames) else data
+    if cfg.centre_teacher == "pasted":
+        from inseggan_ros.learning.pasted import PasteConfig
+
+        return Path(fit(model, source, out, ccfg, progress=progress, user_frames=frames,
+                        pasted=PasteConfig(seed=cfg.seed, train=cfg.scenes,
+                                           val=cfg.val_scenes))["model"])
     held_out = max(1, min(200, len(frames["x"]) // 5))
     return Path(fit(model, source, out, ccfg, progress=progress, self_labels=True,
                     held_out=held_out, workers=cfg.workers, user_frames=frames)["model"])
@@ -925,7 +939,7 @@ def _finishing_stages(finished: Path, sim: Path, view: dict, data, out: Path, cf
     if cfg.self_frames:
         finished = tick("self", self_stage, finished, data, out / "self", cfg, progress)
     if cfg.centre_iterations:
-        folder = "centres" if cfg.centre_teacher == "piles" else "centres_self"
+        folder = CENTRE_TEACHERS[cfg.centre_teacher]
         finished = tick("centres", centres_stage, finished, sim, view, data, out / folder, cfg,
                         progress, tick.budget)
     return finished
