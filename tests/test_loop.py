@@ -121,6 +121,17 @@ def test_a_tiny_loop_explains_held_out_scenes_of_its_shape_better_than_its_start
     with np.load(out / "centres_self" / "self_labels.npz") as saved:
         assert saved["done"].all() and len(saved["labels"]) == 8
     assert "labelled by this model itself" in (out / "model" / "README.md").read_text()
+    # and with centre votes taught on piles pasted from the parts seen whole in those frames:
+    # the vote's scale then chosen on the net's own validation piles
+    run_cli(*args, "--self-frames", "8", "--self-iterations", "10", "--centre-iterations",
+            "20", "--centre-teacher", "pasted", check=True, timeout=900)
+    shipped = checkpoint.load(out / "model" / "model.pt")
+    assert shipped["centre_net"]["teacher"] == "pasted piles"
+    assert (out / "centres_pasted" / "net.pt").is_file()
+    assert shipped["centre_net"]["piles_part"].endswith("parts seen whole in the user's frames")
+    card = json.loads((out / "model" / "card.json").read_text())
+    assert card["vote_scale"]["taught"] and card["vote_scale"]["frames"] == 16  # --val-scenes
+    assert "piles pasted from the" in (out / "model" / "README.md").read_text()
     # without a model the loop's first stage learns the shape from the data set's training
     # frames (here for 2 iterations; from a bag, the test below)
     from inseggan_ros.learning.loop import learn_shape

@@ -109,3 +109,30 @@ def test_over_centre_votes_the_vote_runs_only_where_the_frames_labels_leave_thei
     assert vote_scale.choose(seg, piles)["scale"] == 0
     with pytest.raises(ValueError, match="centre_superpixel_scale -1 invalid; valid: >= 0"):
         replace(seg.inference, centre_superpixel_scale=-1)
+
+
+def test_over_centre_votes_taught_on_the_piles_the_scale_is_the_best_by_its_gain_there():
+    """Piles the centre votes were taught on (`piles["taught"]`, pasted from the user's frames)
+    compare no frames: each scale is scored on them as the segmenter votes, 0 (off) among
+    them, and the best kept only where it beats off by more than the tolerance."""
+    import torch
+
+    from inseggan_ros.data import datasets as data
+    from inseggan_ros.runtime.segment import Segmenter
+
+    torch.set_num_threads(1)
+    seg = Segmenter.from_checkpoint(REPO / "models" / "cylinder" / "model.pt", device="cpu")
+    piles = {**data.load_bag(BAGS / "cylinder_sim", seg.prep_cfg), "taught": True}
+    choice = vote_scale.choose(seg, piles, scales=(50, 1600))
+    rows = {r["scale"]: r["miou"] for r in choice["rows"]}
+    assert choice["taught"] and sorted(rows) == [0, 50, 1600] and "off_edge" not in choice
+    for scale in (0, 1600):
+        labels = seg.segment_batch(piles["x"], piles["fg"], settings=replace(
+            seg.inference, centre_superpixel_scale=scale))["labels"].numpy()
+        assert rows[scale] == pytest.approx(mean_miou(miou_batch(labels, piles["labels"])))
+    assert rows[1600] < rows[0] - 0.02, rows  # coarse superpixels join touching parts
+    assert choice["scale"] in (0, 50) and "pasted from the user's frames" in \
+        vote_scale.describe(choice)
+    if choice["scale"] == 50:
+        assert rows[50] > rows[0] + vote_scale.TOLERANCE
+    assert vote_scale.choose(seg, piles, scales=(50,), tolerance=1.0)["scale"] == 0

@@ -54,7 +54,9 @@ def problems(card: dict) -> list[str]:
                    f"of the time, against {off['piles']:.3f} on the model's own piles: the kept "
                    "template is not the part's shape (see template_family.png), and the centre "
                    f"votes cut across parts; {voted}. Check the segmentations (qualitative.png) "
-                   "before use, or try `inseggan loop --families` with one family named")
+                   "before use, or try `inseggan loop --centre-teacher pasted` (centre votes "
+                   "taught on piles pasted from the parts seen whole in your frames: no "
+                   "template) or `--families` with one family named")
     fg = _best_foreground_iou(card)
     if fg is not None and fg < MIN_FOREGROUND_IOU:
         out.append(f"foreground IoU {fg:.3f} < {MIN_FOREGROUND_IOU} at every tau: the model's "

@@ -63,9 +63,19 @@ def choose(seg, piles: dict, scales=SCALES, tolerance: float = TOLERANCE,
         return {"scale": 0, "default": 0, "frames": 0, "rows": [],
                 "note": "the vote is off in these settings", "setting": "superpixel_scale"}
     _check(piles, scales)
-    candidates = sorted({int(s) for s in scales} | {default})
     outs = _labels(seg, piles["x"], piles["fg"], cfg)  # once: only the vote differs
-    scores = {s: np.asarray(miou_batch(_voted(seg, outs, replace(cfg, superpixel_scale=s)),
+    return {**_by_gain(seg, outs, piles, scales, default, "superpixel_scale", tolerance),
+            "setting": "superpixel_scale"}
+
+
+def _by_gain(seg, outs: list, piles: dict, scales, default: int, setting: str,
+             tolerance: float = TOLERANCE) -> dict:
+    """Each scale's mIoU on the labelled piles and its gain over `default`'s, pile by pile;
+    the best scale whose gain is above `tolerance` and SIGNIFICANCE standard errors, else
+    `default` -> {"scale", "default", "frames", "rows", "tolerance"}."""
+    cfg = seg.inference
+    candidates = sorted({int(s) for s in scales} | {default})
+    scores = {s: np.asarray(miou_batch(_voted(seg, outs, replace(cfg, **{setting: s})),
                                        piles["labels"])) for s in candidates}
     rows = []
     for s in candidates:  # the gain over the settings' own scale, pile by pile
@@ -77,7 +87,7 @@ def choose(seg, piles: dict, scales=SCALES, tolerance: float = TOLERANCE,
               and r["gain"] > max(tolerance, SIGNIFICANCE * r["gain_se"])]
     scale = max(better, key=lambda r: r["miou"])["scale"] if better else default
     return {"scale": scale, "default": default, "frames": len(piles["x"]), "rows": rows,
-            "tolerance": tolerance, "setting": "superpixel_scale"}
+            "tolerance": tolerance}
 
 
 def _check(piles: dict, scales) -> None:
@@ -138,10 +148,22 @@ def over_centres(seg, piles: dict, frames: dict | None, scales=SCALES) -> dict:
     the frames' part), the largest of `scales` whose vote costs the piles at most VOTE_COST
     mIoU -> the choice, as `choose`'s, for `centre_superpixel_scale` ("mismatch": whether the
     shares say so; "off_edge": both). Without frames nothing is measured and the vote stays
-    off."""
+    off.
+
+    Piles that taught the net themselves (`piles["taught"]`: pasted from the user's frames,
+    `learning.pasted`) are of the frames' own part, so the shares compare nothing: there the
+    scale is the best by its gain on them, as `choose` picks it for the z-buffer's labels (on a
+    crank the net's piles chose 80, 0.593 -> 0.630 on a fresh recording; docs/experiments.md,
+    2026-12-08)."""
     cfg = seg.inference
     none = {"scale": 0, "default": 0, "frames": 0, "rows": [],
             "setting": "centre_superpixel_scale"}
+    if piles.get("taught"):
+        _check(piles, scales)
+        cfg = replace(cfg, centre_superpixel_scale=0)
+        outs = _labels(seg, piles["x"], piles["fg"], cfg)
+        return {**none, **_by_gain(seg, outs, piles, scales, 0, "centre_superpixel_scale"),
+                "taught": True, "note": "chosen on the piles the centre votes were taught on"}
     if frames is None or not len(frames["x"]):
         return {**none, "note": "no vote over centre votes"}
     _check(piles, scales)
@@ -186,6 +208,12 @@ def describe(choice: dict) -> str:
                     f"{r['scale']}: {r['gain']:+.3f}" for r in choice["rows"]) + ")")
     if not choice.get("rows"):
         return f"not chosen ({choice.get('note', 'no piles')})"
+    if choice.get("taught"):
+        scores = ", ".join(f"{r['scale']}: {r['miou']:.3f}" for r in choice["rows"])
+        return (f"over centre votes at scale {choice['scale']} (0: off), chosen on "
+                f"{choice['frames']} piles pasted from the user's frames, of those the centre "
+                f"votes were taught on (mIoU by scale: {scores}; off unless a scale beats it "
+                f"by more than {choice['tolerance']} and {SIGNIFICANCE:g} standard errors)")
     scores = ", ".join(f"{r['scale']}: {r['miou']:.3f}" for r in choice["rows"])
     return (f"scale {choice['scale']}, chosen on {choice['frames']} labelled simulated piles of "
             f"the learned part (mIoU by scale: {scores}; the settings' own {choice['default']} "

@@ -953,9 +953,12 @@ CARD_FAMILY_KEYS = ("family", "scale", "pile_w1", "pile_w1_by_scale", "edge_w1",
 def _export_stage(finished: Path, sim: Path, view: dict, data, cfg: LoopConfig, out: Path,
                   camera, recipe: dict | None, budget: Budget | None = None) -> dict:
     """Stage 5: the vote's scale chosen on the last piles' validation split (where
-    `cfg.vote_scales` names scales), then `_export` -> the card."""
+    `cfg.vote_scales` names scales; with centre votes taught on pasted piles, on the first 100
+    of those that chose their iteration), then `_export` -> the card."""
     piles = None
-    if cfg.vote_scales:
+    if cfg.vote_scales and cfg.centre_iterations and cfg.centre_teacher == "pasted":
+        piles = _pasted_val(finished, data, cfg, 100)
+    elif cfg.vote_scales:
         from inseggan_ros.data import datasets as data_mod
 
         piles = data_mod.load_sim_split(sim, "val", limit=100, **view)
@@ -975,6 +978,19 @@ def _export_stage(finished: Path, sim: Path, view: dict, data, cfg: LoopConfig, 
     readme.write_text(markdown(card))
     readme.replace(out / "model" / "README.md")
     return card
+
+
+def _pasted_val(model: Path, data, cfg: LoopConfig, count: int) -> dict:
+    """The first `count` validation piles the centres stage pasted (the same frames, seed and
+    draws: `paste_splits` draws each split from its own seed), marked as the net's own."""
+    from inseggan_ros.learning.pasted import PasteConfig, paste_splits
+    from inseggan_ros.runtime.segment import Segmenter
+
+    seg = Segmenter.from_checkpoint(model, device="cpu")
+    frames = _user_frames(data, seg.prep_cfg, "train", None)
+    val = paste_splits(frames, seg.model_cfg.n_instances, seg.prep_cfg,
+                       PasteConfig(seed=cfg.seed, train=1, val=min(count, cfg.val_scenes)))["val"]
+    return {**val, "taught": True}
 
 
 def _copy_atomic(src: Path, dest: Path) -> None:
